@@ -1,0 +1,51 @@
+"""Process-parallel map over index chunks (fork: workers inherit built acceleration structures).
+
+Falls back to running in-process where fork is unavailable or one worker is asked for.
+Worker count: ``RIRAY_WORKERS`` or the machine's CPU count.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from collections.abc import Callable
+
+_TASK: Callable | None = None
+
+
+def workers_default() -> int:
+    env = os.environ.get("RIRAY_WORKERS")
+    if env:
+        return max(1, int(env))
+    return max(1, os.cpu_count() or 1)
+
+
+def _run(bounds):
+    return _TASK(*bounds)
+
+
+def map_chunks(fn: Callable, n: int, chunk: int, workers: int | None = None,
+               progress: Callable[[float], None] | None = None) -> list:
+    """[fn(start, stop) for each chunk of range(n)], in order, over ``workers`` processes.
+
+    ``progress(fraction)`` is called in the parent as chunks finish."""
+    global _TASK
+    bounds = [(s, min(s + chunk, n)) for s in range(0, n, chunk)]
+    workers = workers_default() if workers is None else workers
+    out = []
+    if workers <= 1 or len(bounds) <= 1 or "fork" not in mp.get_all_start_methods():
+        for i, b in enumerate(bounds):
+            out.append(fn(*b))
+            if progress:
+                progress((i + 1) / len(bounds))
+        return out
+    _TASK = fn
+    try:
+        with mp.get_context("fork").Pool(min(workers, len(bounds))) as pool:
+            for i, r in enumerate(pool.imap(_run, bounds)):
+                out.append(r)
+                if progress:
+                    progress((i + 1) / len(bounds))
+    finally:
+        _TASK = None
+    return out

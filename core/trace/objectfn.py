@@ -1,0 +1,131 @@
+"""The object function f: rays entering the object -> rays leaving it (paper, section 2).
+
+A ray is followed through the chain of reflections/refractions its material calls for, up to
+``max_events`` surface events; if it would still hit the object after that, f returns the
+*null ray* (paper 5.2). Only the material's own effects are simulated:
+  mirror      reflect at every hit; never refracts, no Fresnel
+  glass       refract (IOR), total internal reflection where Snell has no solution; no Fresnel
+  dielectric  at the first hit the ray splits: a reflected ray (weight = exact unpolarized
+              Fresnel reflectance) and the transmitted chain, which then behaves as glass
+The medium is tracked by parity (the ray starts outside; each refraction toggles inside /
+outside), so the result does not depend on which way the patch normals point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..scene.model import ObjectMaterial
+from .patches import PatchTracer
+
+# Secondary rays start on the surface (to ~1e-11 of the object size after Newton); hits nearer
+# than this fraction of the object diagonal are the start point itself, not a new event.
+SECONDARY_T_MIN_REL = 1e-7
+
+
+@dataclass
+class ObjectRays:
+    """f's outputs for N input rays. Miss: ``hit`` False, output = input ray, patch/cls -1.
+    Null: ``null`` True, ``out_dir`` zero. ``normal`` is the unit first-hit normal flipped to
+    face the incoming ray. ``refl_dir``/``fresnel`` are set only for dielectric objects
+    (zero / 0 otherwise). ``t_first`` is the distance to the first hit (inf on a miss)."""
+
+    hit: np.ndarray
+    null: np.ndarray
+    out_origin: np.ndarray
+    out_dir: np.ndarray
+    t_first: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
+    patch: np.ndarray
+    cls: np.ndarray
+    events: np.ndarray
+    refl_dir: np.ndarray
+    fresnel: np.ndarray
+
+    def take(self, idx) -> "ObjectRays":
+        """The rows ``idx`` of every array."""
+        return ObjectRays(**{k: v[idx] for k, v in self.__dict__.items()})
+
+
+def reflect(d, n):
+    """Mirror directions d about unit normals n (either orientation)."""
+    return d - 2.0 * np.einsum("ij,ij->i", d, n)[:, None] * n
+
+
+def refract(d, n, eta):
+    """Snell refraction of unit d through unit n facing against d, eta = n_from / n_to.
+    Returns (directions, tir) where tir marks total internal reflection (direction reflected)."""
+    cos_i = -np.einsum("ij,ij->i", d, n)
+    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
+    tir = k < 0.0
+    cos_t = np.sqrt(np.maximum(k, 0.0))
+    t = eta[:, None] * d + (eta * cos_i - cos_t)[:, None] * n
+    out = np.where(tir[:, None], reflect(d, n), t)
+    return out / np.linalg.norm(out, axis=1)[:, None], tir
+
+
+def fresnel_dielectric(cos_i, eta):
+    """Exact unpolarized Fresnel reflectance, cos_i >= 0 the incidence cosine, eta = n1/n2."""
+    sin_t2 = eta * eta * (1.0 - cos_i * cos_i)
+    cos_t = np.sqrt(np.maximum(1.0 - sin_t2, 0.0))
+    rs = (eta * cos_i - cos_t) / np.maximum(eta * cos_i + cos_t, 1e-300)
+    rp = (cos_i - eta * cos_t) / np.maximum(cos_i + eta * cos_t, 1e-300)
+    return np.where(sin_t2 >= 1.0, 1.0, 0.5 * (rs * rs + rp * rp))
+
+
+def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
+                 max_events: int = 8, tmax=None, inside=None) -> ObjectRays:
+    """Apply f to N rays (origins (N,3), unit dirs (N,3)); ``tmax`` limits the first segment
+    (something in the environment in front of the object). ``inside`` (N,) bool marks rays that
+    start inside a refractive object (default: all start outside)."""
+    o = np.array(origins, dtype=np.float64)
+    d = np.array(dirs, dtype=np.float64)
+    n = len(o)
+    first = tracer.intersect(o, d, tmax=tmax)
+    res = ObjectRays(hit=first.hit.copy(), null=np.zeros(n, bool), out_origin=o.copy(),
+                     out_dir=d.copy(), t_first=first.t.copy(), point=first.point.copy(),
+                     normal=first.normal.copy(), patch=first.patch.copy(), cls=first.cls.copy(),
+                     events=np.zeros(n, np.int64), refl_dir=np.zeros((n, 3)), fresnel=np.zeros(n))
+    flip = np.einsum("ij,ij->i", res.normal, d) > 0.0
+    res.normal[flip] *= -1.0
+
+    act = np.flatnonzero(first.hit)
+    cur_o, cur_d = o[act], d[act]
+    pts, nrm = first.point[act], res.normal[act]
+    inside = np.zeros(len(act), bool) if inside is None else np.asarray(inside, bool)[act].copy()
+    ior = float(material.ior)
+    t_min2 = SECONDARY_T_MIN_REL * tracer.diag
+    for event in range(max_events):
+        res.events[act] += 1
+        if material.kind == "mirror":
+            new_d = reflect(cur_d, nrm)
+        else:
+            eta = np.where(inside, ior, 1.0 / ior)
+            new_d, tir = refract(cur_d, nrm, eta)
+            if event == 0 and material.kind == "dielectric":
+                cos_i = -np.einsum("ij,ij->i", cur_d, nrm)
+                res.fresnel[act] = fresnel_dielectric(cos_i, eta)
+                res.refl_dir[act] = reflect(cur_d, nrm)
+            inside ^= ~tir
+        cur_o = pts
+        cur_d = new_d
+        nxt = tracer.intersect(cur_o, cur_d, tmin=np.full(len(act), t_min2))
+        esc = ~nxt.hit
+        res.out_origin[act[esc]] = cur_o[esc]
+        res.out_dir[act[esc]] = cur_d[esc]
+        keep = ~esc
+        act, cur_o, cur_d, inside = act[keep], cur_o[keep], cur_d[keep], inside[keep]
+        pts = nxt.point[keep]
+        nrm = nxt.normal[keep]
+        f = np.einsum("ij,ij->i", nrm, cur_d) > 0.0
+        nrm[f] *= -1.0
+        if len(act) == 0:
+            break
+    # still hitting after max_events: trapped -> null ray
+    res.null[act] = True
+    res.out_origin[act] = pts
+    res.out_dir[act] = 0.0
+    return res

@@ -1,0 +1,494 @@
+"""Exact ray intersection with the specular object's patches, vectorized over ray batches.
+
+Method (after Martin et al.'s practical NURBS ray tracing, adapted to numpy):
+1. Build: every NURBS patch is cut into rational Bezier pieces and subdivided into flat
+   sub-patches with conservative boxes (``geometry.bezier``); one BVH over all sub-patches.
+2. Query: the BVH yields candidate (ray, sub-patch) pairs. Each pair is seeded from the ray's
+   hit on the two triangles of the sub-patch's corners (sub-patch midpoint if the plane hit is
+   far outside), then Newton iterates on (s, t) in the sub-patch's local coordinates with the
+   ray written as the intersection of two planes (a 2x2 system, well conditioned away from
+   exact tangency). Converged roots inside the sub-patch are hits; the nearest wins.
+3. Fallback: a pair whose Newton run did not converge although its seed says the ray crosses
+   the sub-patch is split into four children, which are retried (a few levels deep).
+4. Pairs are processed nearest box first; once a ray has a hit, candidates whose boxes start
+   beyond it are dropped.
+Mesh patches (triangles) go through the triangle tracer and compete on t.
+
+Units: t is the distance along unit directions, in scene units (metres).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry import bezier as bz
+from ..geometry.nurbs import normals as nurbs_normals
+from ..scene.model import Mesh, SpecularObject
+from .bvh import BVH
+from .meshes import MeshSet
+
+# Flatness of sub-patches, relative to the object's bounding-box diagonal: the control net
+# deviates from its bilinear corner interpolation by at most this much (a good Newton seed).
+FLAT_TOL_REL = 2e-3
+# Newton convergence: residual distance from the ray, relative to the object diagonal.
+# Double precision evaluation of a degree <= 5 patch is good to ~1e-15 relative.
+NEWTON_TOL_REL = 1e-11
+NEWTON_ITERS = 12
+# Newton may step outside the sub-patch while converging; a root is accepted when its local
+# coordinates lie within this margin of [0, 1] (neighbouring sub-patches overlap on edges).
+PARAM_MARGIN = 1e-9
+# Largest Newton step in local parameter units (damping keeps wild steps inside the patch).
+MAX_STEP = 0.5
+# Seeds: a plane hit outside the extended corner triangles (barycentric margin) seeds at the
+# sub-patch midpoint instead.
+SEED_MARGIN = 0.25
+# De Casteljau retry depth for pairs whose Newton run found no usable root (each level halves
+# the net in both directions; the ray is kept only where it meets a child's box).
+FALLBACK_LEVELS = 4
+# A root whose ray makes an angle below asin(GRAZING_COS) with the tangent plane may have a
+# nearer twin root in the same sub-patch: two roots in one sub-patch need the normal to turn by
+# at least twice that angle, which the sub-patch normal cone (bezier.CONE_HALF_ANGLE_DEG) bounds.
+GRAZING_COS = float(np.sin(np.radians(bz.CONE_HALF_ANGLE_DEG)))
+# Child boxes in the retry are padded by this fraction of the object diagonal (rounding).
+BOX_PAD_REL = 1e-12
+# Self-intersection guard: hits closer than this (relative to the object diagonal) are ignored.
+T_MIN_REL = 1e-9
+# |Ss x St| below this (relative to (|Ss| + |St|)^2) marks a degenerate point (pole, collapsed edge):
+# the normal comes from the geometry's limit-normal evaluation instead.
+DEGENERATE_REL = 1e-9
+# Pairs solved per batch (bounds memory: a degree-5 pair gathers 36 x 4 float64 control values).
+PAIR_CHUNK = 1 << 16
+
+
+@dataclass
+class PatchHit:
+    """Nearest hits of a batch of rays. Arrays are (N,) or (N,3); misses have t = inf,
+    patch = -1, cls = -1 and zero point/normal/uv. ``normal`` is the unit geometric normal as the
+    surface is oriented (not flipped toward the ray); (u, v) are the patch's own parameters
+    (barycentric (b1, b2) for mesh patches)."""
+
+    hit: np.ndarray
+    t: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
+    patch: np.ndarray
+    cls: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+
+
+@dataclass
+class _Group:
+    """Sub-patches of one (degree_u, degree_v), from all NURBS patches of the object."""
+
+    ctrl: np.ndarray      # (M, p+1, q+1, 4) homogeneous
+    patch: np.ndarray     # (M,) patch id
+    u0: np.ndarray        # (M,) NURBS parameter rectangle of the sub-patch
+    u1: np.ndarray
+    v0: np.ndarray
+    v1: np.ndarray
+    ps0: np.ndarray       # (M,) the sub-patch's rectangle in its Bezier piece's [0,1]^2
+    ps1: np.ndarray
+    pt0: np.ndarray
+    pt1: np.ndarray
+
+
+class PatchTracer:
+    """Exact nearest-hit queries against the specular object's patches."""
+
+    def __init__(self, obj: SpecularObject):
+        self.object = obj
+        pts = [p.surface.points.reshape(-1, 3) if p.surface is not None else p.vertices
+               for p in obj.patches]
+        allp = np.concatenate(pts)
+        self.lo = allp.min(axis=0)
+        self.hi = allp.max(axis=0)
+        self.diag = float(np.linalg.norm(self.hi - self.lo)) or 1.0
+        self.class_of = np.array([p.class_id for p in obj.patches], dtype=np.int64)
+        self._build_nurbs(obj)
+        self._build_meshes(obj)
+        self.stats = {"pairs": 0, "newton_iters": 0, "fallback_pairs": 0}
+
+    # ------------------------------------------------------------------ build
+    def _build_nurbs(self, obj):
+        flat_tol = FLAT_TOL_REL * self.diag
+        groups: dict[tuple[int, int], list] = {}
+        for pid, patch in enumerate(obj.patches):
+            if patch.surface is None:
+                continue
+            pieces = bz.extract_bezier(patch.surface)
+            sub = bz.subdivide_flat(pieces, flat_tol)
+            pi = sub.piece
+            du = pieces.u1[pi] - pieces.u0[pi]
+            dv = pieces.v1[pi] - pieces.v0[pi]
+            rec = (sub.ctrl, np.full(len(pi), pid),
+                   pieces.u0[pi] + du * sub.s0, pieces.u0[pi] + du * sub.s1,
+                   pieces.v0[pi] + dv * sub.t0, pieces.v0[pi] + dv * sub.t1,
+                   sub.s0, sub.s1, sub.t0, sub.t1, sub.lo, sub.hi)
+            groups.setdefault(sub.ctrl.shape[1:3], []).append(rec)
+        self.groups: list[_Group] = []
+        los, his, gid = [], [], []
+        for g, recs in enumerate(groups.values()):
+            cat = [np.concatenate([r[k] for r in recs]) for k in range(12)]
+            self.groups.append(_Group(*cat[:10]))
+            los.append(cat[10])
+            his.append(cat[11])
+            gid.append(np.full(len(cat[0]), g))
+        if los:
+            self.sub_group = np.concatenate(gid)
+            counts = [len(g.patch) for g in self.groups]
+            self.sub_local = np.concatenate([np.arange(c) for c in counts])
+            self.bvh = BVH.build(np.concatenate(los), np.concatenate(his))
+        else:
+            self.bvh = None
+        self.n_subpatches = int(sum(len(g.patch) for g in self.groups))
+
+    def _build_meshes(self, obj):
+        meshes, ids = [], []
+        for pid, patch in enumerate(obj.patches):
+            if patch.surface is None:
+                meshes.append(Mesh(name=patch.name, vertices=patch.vertices,
+                                   triangles=patch.triangles, material=""))
+                ids.append(pid)
+        self.mesh_patch = np.array(ids, dtype=np.int64)
+        self.meshes = MeshSet(meshes) if meshes else None
+
+    # ------------------------------------------------------------------ query
+    def intersect(self, origins, dirs, tmin=None, tmax=None, patches=None) -> PatchHit:
+        """Nearest hit with t in (max(tmin, T_MIN), tmax) for each ray.
+
+        ``patches``: optional (N, K) int array of patch ids each ray may hit (-1 = unused slot),
+        the RI-Tree's exact first hit against only the candidate patches; None = all patches.
+        """
+        n = len(origins)
+        origins = np.asarray(origins, dtype=np.float64)
+        dirs = np.asarray(dirs, dtype=np.float64)
+        t_floor = T_MIN_REL * self.diag
+        tmin = np.full(n, t_floor) if tmin is None else np.maximum(tmin, t_floor)
+        tmax = np.full(n, np.inf) if tmax is None else np.asarray(tmax, dtype=np.float64)
+        best_t = tmax.copy()
+        res = PatchHit(hit=np.zeros(n, bool), t=np.full(n, np.inf), point=np.zeros((n, 3)),
+                       normal=np.zeros((n, 3)), patch=np.full(n, -1, np.int64),
+                       cls=np.full(n, -1, np.int64), u=np.zeros(n), v=np.zeros(n))
+        if n == 0:
+            return res
+        if self.meshes is not None:
+            self._intersect_meshes(origins, dirs, tmin, best_t, res, patches)
+        if self.bvh is not None:
+            self._intersect_nurbs(origins, dirs, tmin, best_t, res, patches)
+        res.hit = np.isfinite(res.t)
+        res.cls[res.hit] = self.class_of[res.patch[res.hit]]
+        return res
+
+    def _intersect_meshes(self, o, d, tmin, best_t, res, patches):
+        mh = self.meshes.closest_hit(o, d, tmin, best_t)
+        pid = np.where(mh.hit, self.mesh_patch[np.maximum(mh.mesh, 0)], -1)
+        # a candidate restriction drops disallowed mesh hits (an allowed mesh hidden behind a
+        # disallowed one is not searched for: mesh patches are a minor case of the RI-Tree)
+        ok = mh.hit & _allowed(pid, patches)
+        res.t[ok] = mh.t[ok]
+        best_t[ok] = mh.t[ok]
+        res.point[ok] = mh.point[ok]
+        res.normal[ok] = mh.normal[ok]
+        res.patch[ok] = pid[ok]
+        res.u[ok] = mh.b1[ok]
+        res.v[ok] = mh.b2[ok]
+
+    def _intersect_nurbs(self, o, d, tmin, best_t, res, patches):
+        ray, prim, tent = self.bvh.candidates(o, d, tmin, best_t)
+        if patches is not None:
+            g, loc = self.sub_group[prim], self.sub_local[prim]
+            pid = np.empty(len(prim), np.int64)
+            for gi, grp in enumerate(self.groups):
+                sel = g == gi
+                pid[sel] = grp.patch[loc[sel]]
+            keep = _allowed_pairs(pid, ray, patches)
+            ray, prim, tent = ray[keep], prim[keep], tent[keep]
+        # nearest boxes first: rank of each candidate within its ray (pairs come sorted by ray, t)
+        rank = _rank_within(ray)
+        todo = np.ones(len(ray), bool)
+        for stage_max_rank in (2, None):
+            sel = todo & (rank < stage_max_rank) if stage_max_rank is not None else todo.copy()
+            sel &= tent <= best_t[ray]
+            idx = np.flatnonzero(sel)
+            todo[idx] = False
+            for c in range(0, len(idx), PAIR_CHUNK):
+                part = idx[c:c + PAIR_CHUNK]
+                self._solve_pairs(o, d, tmin, best_t, res, ray[part], prim[part])
+
+    def _solve_pairs(self, o, d, tmin, best_t, res, ray, prim):
+        g_of = self.sub_group[prim]
+        loc = self.sub_local[prim]
+        for gi, grp in enumerate(self.groups):
+            sel = np.flatnonzero(g_of == gi)
+            if len(sel) == 0:
+                continue
+            sp = loc[sel]
+            box = np.tile(np.array([0.0, 1.0, 0.0, 1.0]), (len(sp), 1))
+            self._newton_batch(o, d, tmin, best_t, res, ray[sel], grp.ctrl[sp], grp, sp, box,
+                               FALLBACK_LEVELS)
+
+    def _newton_batch(self, o, d, tmin, best_t, res, r, ctrl, grp, sp, box, levels):
+        """Newton on control nets ``ctrl`` (each covering the rectangle ``box`` = (s0, s1, t0, t1)
+        of sub-patch ``sp``'s local coordinates) for rays ``r``; records hits nearer than best_t.
+
+        Pairs without an accepted root, with a root at the ray's start (t <= tmin: a second root
+        may hide beside it) or with a grazing root (a nearer root may share the sub-patch) are
+        split by de Casteljau into four children, kept where the ray still meets their boxes."""
+        if len(r) == 0:
+            return
+        ro, rd = o[r], d[r]
+        n1, n2 = _ray_planes(rd)
+        c1 = np.einsum("ij,ij->i", n1, ro)
+        c2 = np.einsum("ij,ij->i", n2, ro)
+        meet = _hull_meets(ctrl, n1, c1, n2, c2)
+        if not meet.all():
+            r, ctrl, sp, box, ro, rd, n1, n2, c1, c2 = (
+                x[meet] for x in (r, ctrl, sp, box, ro, rd, n1, n2, c1, c2))
+            if len(r) == 0:
+                return
+        self.stats["pairs"] += len(r)
+        s, t = _seed(ctrl, ro, rd)
+        ok = self._newton(ctrl, s, t, n1, c1, n2, c2)
+        in_net = (s >= -PARAM_MARGIN) & (s <= 1 + PARAM_MARGIN) & (t >= -PARAM_MARGIN) \
+            & (t <= 1 + PARAM_MARGIN)
+        retry = ~(ok & in_net)
+        found, suspicious = self._accept(o, d, tmin, best_t, res, r, ctrl, grp, sp, box, ok, s, t,
+                                         twin=True)
+        retry[found] |= suspicious
+        if levels > 0:
+            self._subdivide(o, d, tmin, best_t, res, r, ctrl, grp, sp, box, levels,
+                            np.flatnonzero(retry))
+
+    def _newton(self, ctrl, s, t, n1, c1, n2, c2):
+        """Newton iterations in place on (s, t) for the ray planes (n1.x = c1, n2.x = c2);
+        returns the converged mask. Steps are damped to MAX_STEP; runs that leave [-1, 2]^2 or
+        meet a singular Jacobian stop unconverged."""
+        tol = NEWTON_TOL_REL * self.diag
+        ok = np.zeros(len(s), bool)
+        live = np.ones(len(s), bool)
+        for _ in range(NEWTON_ITERS):
+            li = np.flatnonzero(live)
+            if len(li) == 0:
+                break
+            self.stats["newton_iters"] += len(li)
+            P, Ps, Pt = bz.bezier_eval(ctrl, s[li], t[li], derivatives=1, index=li)
+            f1 = np.einsum("ij,ij->i", n1[li], P) - c1[li]
+            f2 = np.einsum("ij,ij->i", n2[li], P) - c2[li]
+            conv = np.hypot(f1, f2) <= tol
+            ok[li[conv]] = True
+            live[li[conv]] = False
+            a = np.einsum("ij,ij->i", n1[li], Ps)
+            b = np.einsum("ij,ij->i", n1[li], Pt)
+            c = np.einsum("ij,ij->i", n2[li], Ps)
+            e = np.einsum("ij,ij->i", n2[li], Pt)
+            det = a * e - b * c
+            sing = ~(np.abs(det) > 1e-300 + 1e-14 * (np.abs(a * e) + np.abs(b * c)))
+            safe = np.where(sing, 1.0, det)
+            ds = (e * f1 - b * f2) / safe
+            dt = (a * f2 - c * f1) / safe
+            step = np.maximum(np.abs(ds), np.abs(dt))
+            damp = np.where(step > MAX_STEP, MAX_STEP / np.maximum(step, 1e-300), 1.0)
+            s[li] -= np.where(conv, 0.0, ds * damp)
+            t[li] -= np.where(conv, 0.0, dt * damp)
+            lost = (sing | (s[li] < -1.0) | (s[li] > 2.0) | (t[li] < -1.0) | (t[li] > 2.0)) & ~conv
+            live[li[lost]] = False
+        return ok
+
+    def _accept(self, o, d, tmin, best_t, res, r, ctrl, grp, sp, box, ok, s, t, twin):
+        """Record converged roots that lie inside their Bezier piece and beat best_t. Returns
+        (indices of the accepted roots, mask over them of roots that call for a finer look: at
+        the ray's start (t <= tmin) or grazing). With ``twin``, a grazing root's nearer twin
+        is sought by Newton from a seed one estimated chord length back along the ray."""
+        s_sub = box[:, 0] + (box[:, 1] - box[:, 0]) * s
+        t_sub = box[:, 2] + (box[:, 3] - box[:, 2]) * t
+        ps = grp.ps0[sp] + (grp.ps1[sp] - grp.ps0[sp]) * s_sub
+        pt = grp.pt0[sp] + (grp.pt1[sp] - grp.pt0[sp]) * t_sub
+        ok = ok & (ps >= -PARAM_MARGIN) & (ps <= 1 + PARAM_MARGIN) & (pt >= -PARAM_MARGIN) \
+            & (pt <= 1 + PARAM_MARGIN)
+        good = np.flatnonzero(ok)
+        if len(good) == 0:
+            return good, np.zeros(0, bool)
+        P, Ps, Pt, Pss, Pst, Ptt = bz.bezier_eval(ctrl, s[good], t[good], derivatives=2,
+                                                  index=good)
+        rr = r[good]
+        dd = d[rr]
+        tt = np.einsum("ij,ij->i", P - o[rr], dd)
+        nrm = np.cross(Ps, Pt)
+        ln = np.linalg.norm(nrm, axis=1)
+        un = nrm / np.maximum(ln, 1e-300)[:, None]
+        cos = np.einsum("ij,ij->i", un, dd)
+        grazing = np.abs(cos) < GRAZING_COS
+        suspicious = (tt <= tmin[rr]) | grazing
+        cand = np.flatnonzero((tt > tmin[rr]) & (tt < best_t[rr]))
+        order = cand[np.lexsort((tt[cand], rr[cand]))]
+        first = order[np.r_[True, rr[order][1:] != rr[order][:-1]]] if len(order) else order
+        self._record(res, best_t, grp, sp[good[first]], rr[first], tt[first], P[first],
+                     Ps[first], Pt[first], nrm[first], ln[first], s_sub[good[first]],
+                     t_sub[good[first]])
+        g = np.flatnonzero(grazing & (tt > tmin[rr]))
+        if twin and len(g):
+            # the ray direction within the tangent plane, in parameter units per unit length
+            w = dd[g] - cos[g, None] * un[g]
+            w /= np.maximum(np.linalg.norm(w, axis=1), 1e-300)[:, None]
+            a, b = _tangent_coords(Ps[g], Pt[g], w)
+            curv = np.abs(np.einsum("ij,ij->i", un[g], a[:, None] ** 2 * Pss[g]
+                                    + 2 * (a * b)[:, None] * Pst[g] + b[:, None] ** 2 * Ptt[g]))
+            chord = 2.0 * np.abs(cos[g]) / np.maximum(curv, 1e-300)
+            gi = good[g]
+            s2 = s[gi] - chord * a
+            t2 = t[gi] - chord * b
+            ro, rd = o[r[gi]], d[r[gi]]
+            n1, n2 = _ray_planes(rd)
+            c1 = np.einsum("ij,ij->i", n1, ro)
+            c2 = np.einsum("ij,ij->i", n2, ro)
+            ok2 = self._newton(ctrl[gi], s2, t2, n1, c1, n2, c2)
+            self._accept(o, d, tmin, best_t, res, r[gi], ctrl[gi], grp, sp[gi], box[gi], ok2,
+                         s2, t2, twin=False)
+        return good, suspicious
+
+    def _record(self, res, best_t, grp, spf, rr, tt, P, Ps, Pt, nrm, ln, s_sub, t_sub):
+        """Store hits (one per ray) that beat the running best; (s_sub, t_sub) are sub-patch
+        local coordinates."""
+        better = tt < best_t[rr]
+        spf, rr, tt, P, Ps, Pt, nrm, ln, s_sub, t_sub = (
+            x[better] for x in (spf, rr, tt, P, Ps, Pt, nrm, ln, s_sub, t_sub))
+        u = grp.u0[spf] + (grp.u1[spf] - grp.u0[spf]) * s_sub
+        v = grp.v0[spf] + (grp.v1[spf] - grp.v0[spf]) * t_sub
+        deg = ln <= DEGENERATE_REL * (np.linalg.norm(Ps, axis=1)
+                                      + np.linalg.norm(Pt, axis=1)) ** 2 + 1e-300
+        nrm = nrm / np.where(deg, 1.0, ln)[:, None]
+        pid = grp.patch[spf]
+        for p in np.unique(pid[deg]):
+            m = deg & (pid == p)
+            nrm[m] = nurbs_normals(self.object.patches[p].surface, u[m], v[m])
+        best_t[rr] = tt
+        res.t[rr] = tt
+        res.point[rr] = P
+        res.normal[rr] = nrm
+        res.patch[rr] = pid
+        res.u[rr] = u
+        res.v[rr] = v
+
+    def _subdivide(self, o, d, tmin, best_t, res, r, ctrl, grp, sp, box, levels, idx):
+        """Split nets ``idx`` into four children and retry those whose boxes the ray meets."""
+        if len(idx) == 0:
+            return
+        self.stats["fallback_pairs"] += len(idx)
+        left, right = bz.split(ctrl[idx], 1)
+        kids = []
+        for half, (a0, a1) in ((left, (0.0, 0.5)), (right, (0.5, 1.0))):
+            lo_v, hi_v = bz.split(half, 2)
+            for net, (b0, b1) in ((lo_v, (0.0, 0.5)), (hi_v, (0.5, 1.0))):
+                kids.append((net, a0, a1, b0, b1))
+        bx = box[idx]
+        nets = np.concatenate([k[0] for k in kids])
+        rep = np.tile(idx, 4)
+        ws = bx[:, 1] - bx[:, 0]
+        wt = bx[:, 3] - bx[:, 2]
+        kbox = np.concatenate([np.stack([bx[:, 0] + k[1] * ws, bx[:, 0] + k[2] * ws,
+                                         bx[:, 2] + k[3] * wt, bx[:, 2] + k[4] * wt], 1)
+                               for k in kids])
+        pts = nets[..., :3] / nets[..., 3:]
+        lo = pts.min(axis=(1, 2)) - BOX_PAD_REL * self.diag
+        hi = pts.max(axis=(1, 2)) + BOX_PAD_REL * self.diag
+        rr = r[rep]
+        meet = _ray_box(o[rr], d[rr], lo, hi, tmin[rr], best_t[rr])
+        self._newton_batch(o, d, tmin, best_t, res, rr[meet], nets[meet], grp, sp[rep][meet],
+                           kbox[meet], levels - 1)
+
+
+# ---------------------------------------------------------------------- helpers
+def _allowed(pid, patches):
+    if patches is None:
+        return np.ones(len(pid), bool)
+    return np.any(patches == pid[:, None], axis=1) & (pid >= 0)
+
+
+def _allowed_pairs(pid, ray, patches):
+    return np.any(patches[ray] == pid[:, None], axis=1)
+
+
+def _rank_within(ray):
+    """0, 1, 2, ... position of each pair within its ray's run (pairs are grouped by ray)."""
+    if len(ray) == 0:
+        return np.zeros(0, np.int64)
+    start = np.r_[True, ray[1:] != ray[:-1]]
+    idx = np.arange(len(ray))
+    return idx - np.maximum.accumulate(np.where(start, idx, 0))
+
+
+def _ray_planes(d):
+    """Two unit normals orthogonal to each direction and to each other (Duff et al.'s basis)."""
+    sign = np.where(d[:, 2] >= 0.0, 1.0, -1.0)
+    a = -1.0 / (sign + d[:, 2])
+    b = d[:, 0] * d[:, 1] * a
+    n1 = np.stack([1.0 + sign * d[:, 0] ** 2 * a, sign * b, -sign * d[:, 0]], 1)
+    n2 = np.stack([b, sign + d[:, 1] ** 2 * a, -d[:, 1]], 1)
+    return n1, n2
+
+
+def _seed(ctrl, ro, rd):
+    """Newton seeds (s, t) from the ray's hit on the two triangles spanned by the net's corner
+    points (its surface corners); the net's midpoint where the plane hit lies far outside."""
+    corners = ctrl[:, [0, -1, 0, -1], [0, 0, -1, -1]]
+    cP = corners[..., :3] / corners[..., 3:]
+    n = len(ro)
+    s = np.full(n, 0.5)
+    t = np.full(n, 0.5)
+    found = np.zeros(n, bool)
+    # triangle A: (00, 10, 11) -> s = b1 + b2, t = b2 ; triangle B: (00, 11, 01) -> s = b1, t = b1 + b2
+    for (i1, i2), a_is_s in (((1, 3), True), ((3, 2), False)):
+        p0, e1, e2 = cP[:, 0], cP[:, i1] - cP[:, 0], cP[:, i2] - cP[:, 0]
+        pv = np.cross(rd, e2)
+        det = np.einsum("ij,ij->i", e1, pv)
+        usable = np.abs(det) > 1e-300
+        safe = np.where(usable, det, 1.0)
+        tv = ro - p0
+        b1 = np.einsum("ij,ij->i", tv, pv) / safe
+        b2 = np.einsum("ij,ij->i", rd, np.cross(tv, e1)) / safe
+        hit = usable & (b1 >= -SEED_MARGIN) & (b2 >= -SEED_MARGIN) \
+            & (b1 + b2 <= 1.0 + SEED_MARGIN) & ~found
+        ls, lt = (b1 + b2, b2) if a_is_s else (b1, b1 + b2)
+        s = np.where(hit, np.clip(ls, 0.0, 1.0), s)
+        t = np.where(hit, np.clip(lt, 0.0, 1.0), t)
+        found |= hit
+    return s, t
+
+
+def _tangent_coords(Ps, Pt, w):
+    """(a, b) with a Ps + b Pt = w for tangent vectors w (least squares, 2x2 normal equations)."""
+    g11 = np.einsum("ij,ij->i", Ps, Ps)
+    g12 = np.einsum("ij,ij->i", Ps, Pt)
+    g22 = np.einsum("ij,ij->i", Pt, Pt)
+    r1 = np.einsum("ij,ij->i", Ps, w)
+    r2 = np.einsum("ij,ij->i", Pt, w)
+    det = g11 * g22 - g12 * g12
+    safe = np.where(np.abs(det) > 1e-300, det, 1.0)
+    ok = np.abs(det) > 1e-300
+    return np.where(ok, (g22 * r1 - g12 * r2) / safe, 0.0), np.where(ok, (g11 * r2 - g12 * r1) / safe, 0.0)
+
+
+def _hull_meets(ctrl, n1, c1, n2, c2):
+    """False where the ray certainly misses the net's surface: all control points lie strictly
+    on one side of one of the two planes containing the ray (convex hull property, w > 0)."""
+    h = ctrl.reshape(len(ctrl), -1, 4)
+    f1 = np.einsum("nkj,nj->nk", h[..., :3], n1) - c1[:, None] * h[..., 3]
+    f2 = np.einsum("nkj,nj->nk", h[..., :3], n2) - c2[:, None] * h[..., 3]
+    apart = (f1.min(1) > 0) | (f1.max(1) < 0) | (f2.min(1) > 0) | (f2.max(1) < 0)
+    return ~apart
+
+
+def _ray_box(o, d, lo, hi, tmin, tmax):
+    """Whether segments [tmin, tmax] of rays meet boxes [lo, hi] (closed slabs, zero-safe)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t1 = (lo - o) * inv
+        t2 = (hi - o) * inv
+    zero = d == 0.0
+    ins = (o >= lo) & (o <= hi)
+    tn = np.where(zero, np.where(ins, -np.inf, np.inf), np.minimum(t1, t2)).max(axis=1)
+    tf = np.where(zero, np.where(ins, np.inf, -np.inf), np.maximum(t1, t2)).min(axis=1)
+    return (np.maximum(tn, tmin) <= np.minimum(tf, tmax))

@@ -1,0 +1,232 @@
+"""The exact tracer against closed-form optics: a NURBS sphere vs an analytic sphere, a glass
+slab of bilinear patches vs the textbook lateral shift, reversibility of refraction paths."""
+
+import numpy as np
+import pytest
+
+from riray.geometry.primitives import bilinear, sphere
+from riray.scene.model import ObjectMaterial, Patch, SpecularObject
+from riray.trace.objectfn import trace_object
+from riray.trace.patches import PatchTracer
+
+R = 1.3
+C = np.array([0.2, -0.1, 0.4])
+
+
+def angle(a, b):
+    """Angle between unit vectors, stable for tiny angles."""
+    return 2 * np.arctan2(np.linalg.norm(a - b, axis=-1), np.linalg.norm(a + b, axis=-1))
+
+
+@pytest.fixture(scope="module")
+def sphere_tracer():
+    obj = SpecularObject("s", [Patch("sphere", 0, surface=sphere(C, R))])
+    return PatchTracer(obj)
+
+
+def analytic_hit(o, d, inside):
+    """Nearest t > 0 on the analytic sphere; the far root for rays inside."""
+    oc = o - C
+    b = np.einsum("ij,ij->i", oc, d)
+    c = np.einsum("ij,ij->i", oc, oc) - R * R
+    disc = b * b - c
+    sq = np.sqrt(np.maximum(disc, 0))
+    t = np.where(inside, -b + sq, -b - sq)
+    return np.where(disc >= 0, t, np.inf)
+
+
+def analytic_f(o, d, kind, ior, max_events=8):
+    """Closed-form chain on the analytic sphere (same physics, independent geometry)."""
+    o, d = o.copy(), d.copy()
+    n_rays = len(o)
+    inside = np.zeros(n_rays, bool)
+    events = np.zeros(n_rays, int)
+    null = np.zeros(n_rays, bool)
+    act = np.isfinite(analytic_hit(o, d, inside))
+    hit0 = act.copy()
+    for _ in range(max_events + 1):
+        idx = np.flatnonzero(act)
+        if len(idx) == 0:
+            break
+        t = analytic_hit(o[idx], d[idx], inside[idx])
+        if _ == max_events:
+            null[idx[np.isfinite(t)]] = True
+            break
+        p = o[idx] + t[:, None] * d[idx]
+        n = (p - C) / R
+        n = np.where(inside[idx][:, None], -n, n)          # facing the ray
+        dd = d[idx]
+        cos_i = -np.einsum("ij,ij->i", dd, n)
+        if kind == "mirror":
+            nd = dd + 2 * cos_i[:, None] * n
+            tir = np.ones(len(idx), bool)
+        else:
+            eta = np.where(inside[idx], ior, 1 / ior)
+            k = 1 - eta ** 2 * (1 - cos_i ** 2)
+            tir = k < 0
+            nd = np.where(tir[:, None], dd + 2 * cos_i[:, None] * n,
+                          eta[:, None] * dd + (eta * cos_i - np.sqrt(np.maximum(k, 0)))[:, None] * n)
+            inside[idx] ^= ~tir
+        o[idx], d[idx] = p, nd / np.linalg.norm(nd, axis=1)[:, None]
+        events[idx] += 1
+        # a ray leaving a convex body escapes; one still inside goes on
+        act[idx] = inside[idx]
+    return hit0, o, d, events, null
+
+
+def rays_at_sphere(n, rng, b_max=0.98):
+    """Rays from outside aimed at impact parameters up to b_max * R."""
+    dirs = rng.normal(size=(n, 3))
+    dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+    perp = np.cross(dirs, rng.normal(size=(n, 3)))
+    perp /= np.linalg.norm(perp, axis=1)[:, None]
+    b = R * b_max * np.sqrt(rng.random(n))
+    origins = C - 4 * R * dirs + b[:, None] * perp
+    return origins, dirs
+
+
+@pytest.mark.parametrize("kind,ior", [("mirror", 1.0), ("glass", 1.33), ("glass", 1.5), ("glass", 2.4)])
+def test_sphere_matches_closed_form(sphere_tracer, kind, ior):
+    rng = np.random.default_rng(1)
+    o, d = rays_at_sphere(2000, rng)
+    res = trace_object(sphere_tracer, ObjectMaterial(kind=kind, ior=ior), o, d)
+    hit, ao, ad, ev, null = analytic_f(o, d, kind, ior)
+    assert np.array_equal(res.hit, hit) and hit.all()
+    assert np.array_equal(res.events, ev)
+    assert not res.null.any()
+    assert angle(res.out_dir, ad).max() < 1e-9
+    assert np.abs(res.out_origin - ao).max() < 1e-9
+    # first hit point and normal: on the sphere, normal radial and facing the ray
+    assert np.abs(np.linalg.norm(res.point - C, axis=1) - R).max() < 1e-10
+    assert angle(res.normal, (res.point - C) / R).max() < 1e-9
+
+
+def test_ray_at_centre_reflects_back(sphere_tracer):
+    d = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    o = C - 5 * d
+    res = trace_object(sphere_tracer, ObjectMaterial(kind="mirror"), o, d)
+    assert res.hit.all()
+    assert angle(res.out_dir, -d).max() < 1e-9
+    g = trace_object(sphere_tracer, ObjectMaterial(kind="glass", ior=1.5), o, d)
+    assert angle(g.out_dir, d).max() < 1e-9          # straight through the centre
+    assert np.abs(g.out_origin - (C + R * d)).max() < 1e-9
+
+
+def test_missing_rays_pass_unchanged(sphere_tracer):
+    rng = np.random.default_rng(2)
+    _, d = rays_at_sphere(500, rng)
+    perp = np.cross(d, [0.3, 0.7, 0.1])
+    perp /= np.linalg.norm(perp, axis=1)[:, None]
+    b = R * (1.0001 + rng.random(500))                        # impact parameter > R
+    o = C - 4 * R * d + b[:, None] * perp
+    res = trace_object(sphere_tracer, ObjectMaterial(kind="glass"), o, d)
+    assert not res.hit.any()
+    assert np.array_equal(res.out_dir, d) and np.array_equal(res.out_origin, o)
+    assert np.all(res.patch == -1) and np.all(np.isinf(res.t_first))
+
+
+@pytest.mark.parametrize("b", [0.999, 0.99999, 0.9999999])
+def test_near_tangent_rays(sphere_tracer, b):
+    """Grazing rays still hit, with the analytic hit point; direction error stays small."""
+    rng = np.random.default_rng(3)
+    n = 300
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    perp = np.cross(d, rng.normal(size=(n, 3)))
+    perp /= np.linalg.norm(perp, axis=1)[:, None]
+    o = C - 4 * R * d + b * R * perp
+    res = trace_object(sphere_tracer, ObjectMaterial(kind="mirror"), o, d)
+    hit, ao, ad, ev, null = analytic_f(o, d, "mirror", 1.0)
+    assert res.hit.all()
+    assert np.all(np.isfinite(res.out_dir)) and np.all(np.isfinite(res.out_origin))
+    # the hit point is well conditioned along the surface only to ~sqrt(eps)/grazing angle
+    assert np.abs(res.out_origin - ao).max() < 1e-6
+    assert angle(res.out_dir, ad).max() < 1e-5
+
+
+def test_trapped_ray_inside_glass_is_null(sphere_tracer):
+    """A ray inside a sphere keeps its incidence angle at every bounce: beyond the critical
+    angle it is reflected forever, so f returns the null ray after max_events."""
+    ior = 1.5
+    crit = np.arcsin(1 / ior)
+    inc = np.array([crit + 0.05, crit + 0.3, np.pi / 2 - 0.01])   # incidence angles
+    # start at the centre-offset point so the chord meets the surface at angle inc
+    p = C + R * np.array([0.0, 0.0, 1.0]) * np.sin(inc)[:, None]
+    d = np.tile([1.0, 0.0, 0.0], (3, 1))
+    res = trace_object(sphere_tracer, ObjectMaterial(kind="glass", ior=ior), p, d,
+                       max_events=8, inside=np.ones(3, bool))
+    assert res.null.all() and np.all(res.events == 8)
+    assert np.all(res.out_dir == 0)
+    # below the critical angle the same ray escapes at the first event
+    inc2 = np.array([crit - 0.1])
+    p2 = C + R * np.array([[0.0, 0.0, 1.0]]) * np.sin(inc2)
+    res2 = trace_object(sphere_tracer, ObjectMaterial(kind="glass", ior=ior), p2, d[:1],
+                        inside=np.ones(1, bool))
+    assert not res2.null.any() and res2.events[0] == 1
+
+
+def glass_box(lo, hi, ior=1.5):
+    """A closed box of six bilinear patches."""
+    x0, y0, z0 = lo
+    x1, y1, z1 = hi
+    P = lambda x, y, z: np.array([x, y, z], float)  # noqa: E731
+    faces = [
+        (P(x0, y0, z0), P(x1, y0, z0), P(x0, y1, z0), P(x1, y1, z0)),
+        (P(x0, y0, z1), P(x1, y0, z1), P(x0, y1, z1), P(x1, y1, z1)),
+        (P(x0, y0, z0), P(x1, y0, z0), P(x0, y0, z1), P(x1, y0, z1)),
+        (P(x0, y1, z0), P(x1, y1, z0), P(x0, y1, z1), P(x1, y1, z1)),
+        (P(x0, y0, z0), P(x0, y1, z0), P(x0, y0, z1), P(x0, y1, z1)),
+        (P(x1, y0, z0), P(x1, y1, z0), P(x1, y0, z1), P(x1, y1, z1)),
+    ]
+    patches = [Patch(f"f{i}", i, surface=bilinear(*f)) for i, f in enumerate(faces)]
+    return SpecularObject("slab", patches, ObjectMaterial(kind="glass", ior=ior))
+
+
+@pytest.mark.parametrize("theta_deg", [0.0, 10.0, 35.0, 60.0])
+def test_glass_slab_lateral_shift(theta_deg):
+    thick, ior = 0.5, 1.5
+    obj = glass_box((-5, -5, 0), (5, 5, thick), ior)
+    tr = PatchTracer(obj)
+    th = np.radians(theta_deg)
+    rng = np.random.default_rng(4)
+    n = 200
+    phi = rng.uniform(0, 2 * np.pi, n)
+    d = np.stack([np.sin(th) * np.cos(phi), np.sin(th) * np.sin(phi), -np.cos(th) * np.ones(n)], 1)
+    xy = rng.uniform(-1, 1, (n, 2))
+    o = np.column_stack([xy, np.full(n, thick + 1.0)])
+    res = trace_object(tr, obj.material, o, d)
+    assert res.hit.all() and np.all(res.events == 2)
+    assert angle(res.out_dir, d).max() < 1e-10          # exit parallel to entry
+    # lateral offset between the entry line and the exit line: t sin(th - th') / cos(th')
+    th_t = np.arcsin(np.sin(th) / ior)
+    expect = thick * np.sin(th - th_t) / np.cos(th_t)
+    w = res.out_origin - o
+    off = np.linalg.norm(w - np.einsum("ij,ij->i", w, d)[:, None] * d, axis=1)
+    assert np.abs(off - expect).max() < 1e-10
+    assert np.abs(res.out_origin[:, 2]).max() < 1e-10            # leaves through the bottom
+
+
+@pytest.mark.parametrize("ior", [1.33, 1.7])
+def test_refraction_paths_are_reversible(sphere_tracer, ior):
+    rng = np.random.default_rng(5)
+    o, d = rays_at_sphere(500, rng, b_max=0.95)
+    mat = ObjectMaterial(kind="glass", ior=ior)
+    fwd = trace_object(sphere_tracer, mat, o, d)
+    back_o = fwd.out_origin + 3 * R * fwd.out_dir
+    back = trace_object(sphere_tracer, mat, back_o, -fwd.out_dir)
+    assert angle(back.out_dir, -d).max() < 1e-9
+    # the reversed ray leaves through the forward ray's first hit point
+    assert np.abs(back.out_origin - fwd.point).max() < 1e-9
+
+
+def test_candidate_patch_restriction():
+    """An exact first hit against only some patches (the RI-Tree's two-patch case)."""
+    obj = glass_box((0, 0, 0), (1, 1, 1))
+    tr = PatchTracer(obj)
+    o = np.array([[0.5, 0.5, 3.0]])
+    d = np.array([[0.0, 0.0, -1.0]])
+    assert tr.intersect(o, d).patch[0] == 1                      # the top face, z = 1
+    only_bottom = tr.intersect(o, d, patches=np.array([[0, -1]]))
+    assert only_bottom.patch[0] == 0 and abs(only_bottom.t[0] - 3.0) < 1e-12
+    none = tr.intersect(o, d, patches=np.array([[3, 4]]))
+    assert not none.hit[0]
