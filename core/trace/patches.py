@@ -234,9 +234,9 @@ class PatchTracer:
         """Newton on control nets ``ctrl`` (each covering the rectangle ``box`` = (s0, s1, t0, t1)
         of sub-patch ``sp``'s local coordinates) for rays ``r``; records hits nearer than best_t.
 
-        Pairs without an accepted root, with a root at the ray's start (t <= tmin: a second root
-        may hide beside it) or with a grazing root (a nearer root may share the sub-patch) are
-        split by de Casteljau into four children, kept where the ray still meets their boxes."""
+        Pairs without a root, with a root outside the net although the ray crosses the net's
+        corner triangles, or with a grazing root (a nearer root may share
+        the net, also beside a root at the ray's own start), are split by de Casteljau into four children, kept where the ray still meets their boxes."""
         if len(r) == 0:
             return
         ro, rd = o[r], d[r]
@@ -250,11 +250,12 @@ class PatchTracer:
             if len(r) == 0:
                 return
         self.stats["pairs"] += len(r)
-        s, t = _seed(ctrl, ro, rd)
+        s, t, crossed = _seed(ctrl, ro, rd)
         ok = self._newton(ctrl, s, t, n1, c1, n2, c2)
         in_net = (s >= -PARAM_MARGIN) & (s <= 1 + PARAM_MARGIN) & (t >= -PARAM_MARGIN) \
             & (t <= 1 + PARAM_MARGIN)
-        retry = ~(ok & in_net)
+        # no root at all, or a root elsewhere although the ray crosses the net's corner triangles
+        retry = ~ok | (~in_net & crossed)
         found, suspicious = self._accept(o, d, tmin, best_t, res, r, ctrl, grp, sp, box, ok, s, t,
                                          twin=True)
         retry[found] |= suspicious
@@ -299,8 +300,8 @@ class PatchTracer:
 
     def _accept(self, o, d, tmin, best_t, res, r, ctrl, grp, sp, box, ok, s, t, twin):
         """Record converged roots that lie inside their Bezier piece and beat best_t. Returns
-        (indices of the accepted roots, mask over them of roots that call for a finer look: at
-        the ray's start (t <= tmin) or grazing). With ``twin``, a grazing root's nearer twin
+        (indices of the accepted roots, mask over them of grazing roots, which call for a finer
+        look). With ``twin``, a grazing root's nearer twin
         is sought by Newton from a seed one estimated chord length back along the ray."""
         s_sub = box[:, 0] + (box[:, 1] - box[:, 0]) * s
         t_sub = box[:, 2] + (box[:, 3] - box[:, 2]) * t
@@ -321,7 +322,10 @@ class PatchTracer:
         un = nrm / np.maximum(ln, 1e-300)[:, None]
         cos = np.einsum("ij,ij->i", un, dd)
         grazing = np.abs(cos) < GRAZING_COS
-        suspicious = (tt <= tmin[rr]) | grazing
+        # a second root beside this one in the same flat net needs a grazing ray (the net's
+        # normal cone bounds how far the surface can turn back); that covers roots at the
+        # ray's own start (t <= tmin) as well
+        suspicious = grazing
         cand = np.flatnonzero((tt > tmin[rr]) & (tt < best_t[rr]))
         order = cand[np.lexsort((tt[cand], rr[cand]))]
         first = order[np.r_[True, rr[order][1:] != rr[order][:-1]]] if len(order) else order
@@ -432,7 +436,8 @@ def _ray_planes(d):
 
 def _seed(ctrl, ro, rd):
     """Newton seeds (s, t) from the ray's hit on the two triangles spanned by the net's corner
-    points (its surface corners); the net's midpoint where the plane hit lies far outside."""
+    points (its surface corners); the net's midpoint where the plane hit lies far outside.
+    Also returns whether the ray crossed the (slightly extended) triangles."""
     corners = ctrl[:, [0, -1, 0, -1], [0, 0, -1, -1]]
     cP = corners[..., :3] / corners[..., 3:]
     n = len(ro)
@@ -455,7 +460,7 @@ def _seed(ctrl, ro, rd):
         s = np.where(hit, np.clip(ls, 0.0, 1.0), s)
         t = np.where(hit, np.clip(lt, 0.0, 1.0), t)
         found |= hit
-    return s, t
+    return s, t, found
 
 
 def _tangent_coords(Ps, Pt, w):

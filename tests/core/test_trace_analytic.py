@@ -230,3 +230,23 @@ def test_candidate_patch_restriction():
     assert only_bottom.patch[0] == 0 and abs(only_bottom.t[0] - 3.0) < 1e-12
     none = tr.intersect(o, d, patches=np.array([[3, 4]]))
     assert not none.hit[0]
+
+
+def test_silhouette_hit_or_miss_matches_analytic(sphere_tracer):
+    """Rays with impact parameters within 0.5 % of the radius: hit exactly when b < R (rays
+    within 1e-9 R of tangency are allowed either answer), nearest root to 1e-7."""
+    rng = np.random.default_rng(6)
+    n = 4000
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    perp = np.cross(d, rng.normal(size=(n, 3)))
+    perp /= np.linalg.norm(perp, axis=1)[:, None]
+    b = R * rng.uniform(0.995, 1.005, n)
+    o = C - 4 * R * d + b[:, None] * perp
+    h = sphere_tracer.intersect(o, d)
+    clear = np.abs(b - R) > 1e-9 * R
+    assert np.array_equal(h.hit[clear], (b < R)[clear])
+    t_true = analytic_hit(o, d, np.zeros(n, bool))
+    sel = h.hit & clear
+    assert np.abs(h.t[sel] - t_true[sel]).max() < 1e-7
+    assert np.all(np.isfinite(h.normal)) and np.all(np.isfinite(h.point))
