@@ -30,8 +30,10 @@ class Texture:
       "checker"   color, color2, scale (checks per unit of the coordinate)
       "stripes"   color, color2, scale, axis (0/1/2: stripes vary along that coordinate)
       "gradient"  color -> color2 linearly along ``axis`` from ``start`` to ``end`` (clamped)
-      "image"     an image file (PNG or .npy float HxWx3), bilinear, repeat wrap; uses mesh UVs
-    coords: "uv" (mesh UVs, required for "image") or "world" (world xyz; uv = xy for 2D kinds).
+      "image"     an image file (PNG or .npy float HxWx3) at uv * scale, bilinear, repeat wrap,
+                  uv (0, 0) = bottom-left of the image
+    coords: "uv" (mesh UVs) or "world" (world xyz; uv = xy for 2D kinds). Evaluation and exact
+    rules: trace/textures.py; file defaults (coords "uv" for images): docs/scene-format.md.
     """
 
     kind: str = "constant"
@@ -130,8 +132,9 @@ class Light:
 
 @dataclass
 class World:
-    """What a ray that escapes everything sees. kind: "color", "gradient" (horizon->zenith by
-    direction z), "image" (equirectangular, +X at the image centre, like Blender)."""
+    """What a ray that escapes everything sees, times ``strength``. kind: "color", "gradient"
+    (``color`` at and below the horizon -> ``zenith``, t = clamp(direction z, 0, 1)), "image"
+    (equirectangular, +X at the image centre, like Blender)."""
 
     kind: str = "color"
     color: RGB = (0.05, 0.05, 0.05)
@@ -147,7 +150,8 @@ class Camera:
     """Blender camera conventions: looks down its local -Z, up is local +Y.
 
     lens and sensor sizes in mm; sensor_fit "AUTO" | "HORIZONTAL" | "VERTICAL"; shift in units of
-    the fitted sensor dimension (Blender's rule); ortho_scale = width of the larger frame side.
+    the fitted sensor dimension (Blender's rule); ortho_scale = size in metres of the fitted frame
+    side (the larger side for AUTO). Exact rules: render/camera.py.
     """
 
     name: str

@@ -1,0 +1,216 @@
+"""Scene file format: exact round trip, convenience forms, and one clear error per rule."""
+
+import copy
+import json
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from riray.render.image import write_float_image, write_png_u8
+from riray.scene.io import SceneError, load_scene, save_scene, scene_from_dict, scene_to_dict
+
+
+def bilinear_patch(name="p0", class_id=0):
+    return {"kind": "nurbs", "name": name, "class_id": class_id, "degree_u": 1, "degree_v": 1,
+            "knots_u": [0, 0, 1, 1], "knots_v": [0.0, 0.0, 1.0, 1.0],
+            "points": [[[0, 0, 0], [0, 1, 0]], [[1, 0, 0], [1, 1, 0.5]]],
+            "weights": [[1.0, 1.0], [1.0, 2.0]]}
+
+
+def minimal():
+    return {
+        "format": "riray-scene", "version": 1, "name": "t",
+        "render": {"width": 64, "height": 48, "max_events": 4},
+        "object": {"name": "obj", "material": {"kind": "glass", "ior": 1.45},
+                   "patches": [bilinear_patch(),
+                               {"kind": "mesh", "name": "tri", "class_id": 1,
+                                "vertices": [[0, 0, 1], [1, 0, 1], [0, 1, 1]],
+                                "triangles": [[0, 1, 2]]}]},
+        "environment": {"meshes": [
+            {"name": "floor", "material": "chk", "vertices": [[-1, -1, 0], [1, -1, 0], [1, 1, 0],
+                                                               [-1, 1, 0]],
+             "quads": [[0, 1, 2, 3]], "uvs": [[0, 0], [1, 0], [1, 1], [0, 1]]}]},
+        "materials": [{"name": "chk", "color": {"kind": "checker", "coords": "uv", "scale": 4}},
+                      {"name": "lamp", "kind": "emission", "color": [1, 0.5, 0.25],
+                       "strength": 2}],
+        "lights": [{"name": "L", "position": [0, 0, 3], "power": 500},
+                   {"name": "S", "kind": "sun", "direction": [0, 0, -2], "strength": 2.5}],
+        "world": {"kind": "gradient", "color": [0.1, 0.1, 0.1], "zenith": [0.2, 0.3, 0.9]},
+        "cameras": [{"name": "cam", "location": [0, -5, 1], "look_at": [0, 0, 1]},
+                    {"name": "top", "kind": "orthographic", "ortho_scale": 3.0,
+                     "matrix_world": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 10], [0, 0, 0, 1]]}],
+    }
+
+
+def errmsg(d, **kw):
+    with pytest.raises(SceneError) as e:
+        scene_from_dict(d, **kw)
+    return str(e.value)
+
+
+def test_load_builds_model_and_conveniences():
+    s = scene_from_dict(minimal())
+    assert s.render.width == 64 and s.object.material.ior == 1.45
+    assert s.object.patches[0].surface.weights[1, 1] == 2.0
+    assert s.object.patches[1].is_mesh and s.object.patches[1].triangles.dtype == np.int64
+    floor = s.meshes[0]
+    assert floor.triangles.tolist() == [[0, 1, 2], [0, 2, 3]]     # quad split on load
+    assert s.materials["lamp"].color.kind == "constant" and s.materials["lamp"].color.color[2] == 0.25
+    assert s.lights[1].direction == (0.0, 0.0, -1.0)                 # normalized on load
+    m = s.cameras[0].matrix_world                                     # look_at form
+    assert np.allclose(m[:3, 3], [0, -5, 1])
+    assert np.allclose(-m[:3, 2], [0, 1, 0]) and np.allclose(m[:3, 1], [0, 0, 1])
+    assert s.cameras[1].kind == "orthographic"
+
+
+def test_polygons_fan_triangulated():
+    d = minimal()
+    del d["environment"]["meshes"][0]["quads"]
+    d["environment"]["meshes"][0]["polygons"] = [[0, 1, 2, 3], [0, 2, 3]]
+    tris = scene_from_dict(d).meshes[0].triangles
+    assert tris.tolist() == [[0, 1, 2], [0, 2, 3], [0, 2, 3]]
+
+
+def test_save_load_round_trip_exact(tmp_path):
+    d = minimal()
+    d["object"]["patches"][0]["points"][0][0] = [0.1, 1 / 3, math.pi]    # needs repr precision
+    s = scene_from_dict(d)
+    p = tmp_path / "s.json"
+    save_scene(s, p)
+    s2 = load_scene(p)
+    assert scene_to_dict(s2) == scene_to_dict(s)
+    assert s2.object.patches[0].surface.points[0, 0, 1] == 1 / 3
+    np.testing.assert_array_equal(s2.cameras[0].matrix_world, s.cameras[0].matrix_world)
+    save_scene(s2, p)                                                 # idempotent text
+    text = p.read_text()
+    save_scene(load_scene(p), p)
+    assert p.read_text() == text
+    assert [x.name for x in tmp_path.iterdir()] == ["s.json"]         # no temp files left
+
+
+def test_images_load_relative_to_scene_file(tmp_path):
+    (tmp_path / "tex").mkdir()
+    write_png_u8(tmp_path / "tex" / "a.png", np.full((2, 3, 3), 255, np.uint8))
+    write_float_image(tmp_path / "sky.npy", np.full((4, 8, 3), 0.5))
+    d = minimal()
+    d["materials"][0]["color"] = {"kind": "image", "path": "tex/a.png"}
+    d["world"] = {"kind": "image", "path": "sky.npy", "strength": 2}
+    p = tmp_path / "s.json"
+    p.write_text(json.dumps(d))
+    s = load_scene(p)
+    assert s.materials["chk"].color.image.shape == (2, 3, 3)
+    assert s.materials["chk"].color.coords == "uv"                    # image default coords
+    assert np.all(s.world.image == 0.5)
+    d["world"]["path"] = "missing.npy"
+    p.write_text(json.dumps(d))
+    with pytest.raises(SceneError, match=r"^world\.path: image file not found"):
+        load_scene(p)
+
+
+def test_invalid_json_and_duplicate_keys(tmp_path):
+    p = tmp_path / "bad.json"
+    p.write_text('{"format": "riray-scene",\n "version": 1,,}')
+    with pytest.raises(SceneError, match="line 2 column"):
+        load_scene(p)
+    p.write_text('{"format": "riray-scene", "version": 1, "version": 1}')
+    with pytest.raises(SceneError, match="duplicate key 'version'"):
+        load_scene(p)
+
+
+def mutate(path, value):
+    """minimal() with the field at ``path`` (a list of keys) set to ``value`` (None deletes)."""
+    d = copy.deepcopy(minimal())
+    node = d
+    for k in path[:-1]:
+        node = node[k]
+    if value is None:
+        del node[path[-1]]
+    else:
+        node[path[-1]] = value
+    return d
+
+
+PATCH = ["object", "patches", 0]
+MESH = ["environment", "meshes", 0]
+CAM = ["cameras", 1]
+CASES = [
+    (["format"], "scene", r"^format: expected 'riray-scene'"),
+    (["version"], 2, r"^version: unsupported version 2"),
+    (["lihgts"], [], r"^top level: unknown key 'lihgts'; did you mean 'lights'\?"),
+    (["object"], None, r"^top level: missing required key 'object'"),
+    (PATCH + ["weights", 1, 1], -1.0, r"^object\.patches\[0\]\.weights\[1\]\[1\]: weight must be > 0 \(got -1\.0\)"),
+    (PATCH + ["weights", 0, 1], float("nan"), r"^object\.patches\[0\]\.weights\[0\]\[1\]: must be finite"),
+    (PATCH + ["points", 1, 0, 2], float("inf"), r"^object\.patches\[0\]\.points\[1\]\[0\]\[2\]: must be finite"),
+    (PATCH + ["points", 1, 0, 2], "0", r"^object\.patches\[0\]\.points\[1\]\[0\]\[2\]: expected a number"),
+    (PATCH + ["points", 1, 1], [1, 1], r"^object\.patches\[0\]\.points\[1\]\[1\]: expected 3 entries"),
+    (PATCH + ["knots_u"], [0, 0, 1], r"^object\.patches\[0\]\.knots_u: expected n_u \+ degree_u \+ 1 = 2 \+ 1 \+ 1 = 4 knots \(got 3\)"),
+    (PATCH + ["knots_v"], [0, 1, 0.5, 1], r"^object\.patches\[0\]\.knots_v\[2\]: knots must be non-decreasing"),
+    (PATCH + ["degree_u"], 1.0, r"^object\.patches\[0\]\.degree_u: expected an integer"),
+    (PATCH + ["degree_u"], 2, r"^object\.patches\[0\]\.points: 2 control points along u; need at least"),
+    (PATCH + ["kind"], "bezier", r"^object\.patches\[0\]\.kind: unknown kind 'bezier'"),
+    (PATCH + ["wieghts"], [], r"^object\.patches\[0\]: unknown key 'wieghts' for a nurbs patch; did you mean 'weights'"),
+    (PATCH + ["class_id"], -1, r"^object\.patches\[0\]\.class_id: must be >= 0"),
+    (["object", "patches"], [], r"^object\.patches: the specular object needs at least one patch"),
+    (["object", "material", "ior"], 0, r"^object\.material\.ior: must be > 0 \(got 0\.0\)"),
+    (["object", "material", "kind"], "metal", r"^object\.material\.kind: unknown kind 'metal'"),
+    (MESH + ["quads", 0, 3], 4, r"^environment\.meshes\[0\]\.quads\[0\]\[3\]: vertex index 4 out of range"),
+    (MESH + ["material"], "wal", r"^environment\.meshes\[0\]\.material: material 'wal' is not defined"),
+    (MESH + ["uvs"], None, r"^environment\.meshes\[0\]: material 'chk' has a uv-mapped texture but"),
+    (MESH + ["uvs"], [[0, 0]], r"^environment\.meshes\[0\]\.uvs: expected 4 entries"),
+    (MESH + ["quads"], None, r"^environment\.meshes\[0\]: missing faces"),
+    (MESH + ["quads"], [], r"^environment\.meshes\[0\]: the mesh has no faces"),
+    (["object", "patches", 1, "triangles", 0, 0], -1, r"^object\.patches\[1\]\.triangles\[0\]\[0\]: vertex index -1"),
+    (["materials", 0, "color", "axis"], 1, r"^materials\[0\]\.color: unknown key 'axis' for texture kind 'checker'"),
+    (["materials", 0, "color", "kind"], "noise", r"^materials\[0\]\.color\.kind: unknown kind 'noise'"),
+    (["materials", 0, "color", "scale"], 0, r"^materials\[0\]\.color\.scale: must be > 0"),
+    (["materials", 1, "color", 1], -0.5, r"^materials\[1\]\.color\[1\]: colour components must be >= 0"),
+    (["materials", 1, "name"], "chk", r"^materials\[1\]\.name: duplicate material name 'chk'"),
+    (["lights", 0, "direction"], [0, 0, 1], r"^lights\[0\]: unknown key 'direction' for light kind 'point'"),
+    (["lights", 1, "direction"], [0, 0, 0], r"^lights\[1\]\.direction: must not be the zero vector"),
+    (["world", "kind"], "sky", r"^world\.kind: unknown kind 'sky'"),
+    (["render", "width"], 0, r"^render\.width: must be >= 1 \(got 0\)"),
+    (["render", "height"], 16385, r"^render\.height: must be <= 16384"),
+    (["render", "max_events"], 0, r"^render\.max_events: must be >= 1"),
+    (CAM + ["lens"], -50, r"^cameras\[1\]\.lens: must be > 0"),
+    (CAM + ["sensor_fit"], "auto", r"^cameras\[1\]\.sensor_fit: unknown sensor_fit 'auto'"),
+    (CAM + ["matrix_world", 0, 0], 2.0, r"^cameras\[1\]\.matrix_world: not rigid: rotation part is not orthonormal"),
+    (CAM + ["matrix_world", 0], [-1, 0, 0, 0], r"^cameras\[1\]\.matrix_world: not rigid: rotation part is a reflection"),
+    (CAM + ["matrix_world", 3], [0, 0, 1, 1], r"^cameras\[1\]\.matrix_world\[3\]: bottom row must be"),
+    (CAM + ["location"], [0, 0, 0], r"^cameras\[1\]: unknown key 'location'"),
+    (["cameras", 0, "look_at"], [0, -5, 1], r"^cameras\[0\]: look_at equals location"),
+    (["cameras", 0, "up"], [0, 1, 0], r"^cameras\[0\]: up is zero or parallel"),
+    (["cameras", 1, "name"], "cam", r"^cameras\[1\]\.name: duplicate camera name 'cam'"),
+]
+
+
+@pytest.mark.parametrize("path,value,pattern", CASES, ids=[str(c[0]) + "=" + repr(c[1]) for c in CASES])
+def test_validation_names_field_and_problem(path, value, pattern):
+    msg = errmsg(mutate(path, value))
+    assert re.search(pattern, msg), msg
+
+
+def test_tolerates_near_rigid_camera():
+    c = 1 / math.sqrt(2)
+    d = mutate(CAM + ["matrix_world"], [[c, -c, 0, 1], [c, c + 1e-8, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]])
+    assert scene_from_dict(d).cameras[1].matrix_world[1, 3] == 2
+
+
+def test_save_rejects_invalid_scene_and_keeps_old_file(tmp_path):
+    s = scene_from_dict(minimal())
+    p = tmp_path / "s.json"
+    save_scene(s, p)
+    before = p.read_text()
+    s.object.patches[0].surface.weights[0, 0] = 0.0
+    with pytest.raises(SceneError, match=r"weights\[0\]\[0\]: weight must be > 0"):
+        save_scene(s, p)
+    assert p.read_text() == before
+
+
+def test_documented_example_loads():
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "scene-format.md").read_text()
+    example = re.search(r"```json\n(.*?)```", doc, re.S).group(1)
+    s = scene_from_dict(json.loads(example))
+    assert s.name == "tiny" and len(s.meshes[0].triangles) == 2 and s.cameras[0].lens == 35.0
