@@ -44,6 +44,7 @@ class ObjectRays:
     events: np.ndarray
     refl_dir: np.ndarray
     fresnel: np.ndarray
+    tree: np.ndarray
 
     def take(self, idx) -> "ObjectRays":
         """The rows ``idx`` of every array."""
@@ -88,13 +89,16 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
     res = ObjectRays(hit=first.hit.copy(), null=np.zeros(n, bool), out_origin=o.copy(),
                      out_dir=d.copy(), t_first=first.t.copy(), point=first.point.copy(),
                      normal=first.normal.copy(), patch=first.patch.copy(), cls=first.cls.copy(),
-                     events=np.zeros(n, np.int64), refl_dir=np.zeros((n, 3)), fresnel=np.zeros(n))
+                     events=np.zeros(n, np.int64), refl_dir=np.zeros((n, 3)), fresnel=np.zeros(n),
+                     tree=np.zeros(n, np.uint32))
     flip = np.einsum("ij,ij->i", res.normal, d) > 0.0
     res.normal[flip] *= -1.0
 
     act = np.flatnonzero(first.hit)
     cur_o, cur_d = o[act], d[act]
     pts, nrm = first.point[act], res.normal[act]
+    patch = first.patch[act]
+    tree = np.full(len(act), 2166136261, dtype=np.uint64)       # FNV-1a style running hash
     inside = np.zeros(len(act), bool) if inside is None else np.asarray(inside, bool)[act].copy()
     ior = float(material.ior)
     t_min2 = SECONDARY_T_MIN_REL * tracer.diag
@@ -110,15 +114,20 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
                 res.fresnel[act] = fresnel_dielectric(cos_i, eta)
                 res.refl_dir[act] = reflect(cur_d, nrm)
             inside ^= ~tir
+        kind = np.ones(len(act), np.uint64) if material.kind == "mirror" else \
+            np.where(tir, 1, 2).astype(np.uint64)
+        code = patch.astype(np.uint64) * np.uint64(4) + np.uint64(4) + kind
+        tree = ((tree ^ code) * np.uint64(16777619)) & np.uint64(0xFFFFFFFF)
         cur_o = pts
         cur_d = new_d
         nxt = tracer.intersect(cur_o, cur_d, tmin=np.full(len(act), t_min2))
         esc = ~nxt.hit
         res.out_origin[act[esc]] = cur_o[esc]
         res.out_dir[act[esc]] = cur_d[esc]
+        res.tree[act[esc]] = tree[esc]
         keep = ~esc
-        act, cur_o, cur_d, inside = act[keep], cur_o[keep], cur_d[keep], inside[keep]
-        pts = nxt.point[keep]
+        act, cur_o, cur_d, inside, tree = act[keep], cur_o[keep], cur_d[keep], inside[keep], tree[keep]
+        pts, patch = nxt.point[keep], nxt.patch[keep]
         nrm = nxt.normal[keep]
         f = np.einsum("ij,ij->i", nrm, cur_d) > 0.0
         nrm[f] *= -1.0
@@ -126,6 +135,7 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
             break
     # still hitting after max_events: trapped -> null ray
     res.null[act] = True
+    res.tree[act] = tree
     res.out_origin[act] = pts
     res.out_dir[act] = 0.0
     return res
