@@ -224,6 +224,7 @@ def make_cameras(points: np.ndarray, zoom_target, azimuth: float, elevation: flo
     distance (at least FAR_MIN; clamped inside ``bounds``, the room's inner box), the object a
     fifth to a third of the frame with the table and walls around it. zoom: 135 mm from the close
     camera's position aimed at ``zoom_target``, so a section of the surface fills the frame.
+    """
     lo, hi = points.min(axis=0), points.max(axis=0)
     centre = (lo + hi) / 2
     d = _direction(azimuth, elevation)
@@ -306,8 +307,8 @@ def build(name: str, material=None) -> Scene:
         band = dense[np.abs(dense[:, 2] - z) < 0.01]
         zoom = band[np.argmax(band @ _direction(az, el))]
     cams = make_cameras(pts, zoom, az, el, room_bounds())
-    return Scene(object=SpecularObject(name=name, patches=patches,
-                                       material=mat_override or default_mat),
+    obj_mat = default_mat if mat_override is None else mat_override
+    return Scene(object=SpecularObject(name=name, patches=patches, material=obj_mat),
                  meshes=meshes, materials=materials, lights=lights, world=world, cameras=cams,
                  render=RenderSettings(**RENDER), name=name)
 
