@@ -46,7 +46,7 @@ MAX_STEP = 0.5
 SEED_MARGIN = 0.25
 # De Casteljau retry depth for pairs whose Newton run found no usable root (each level halves
 # the net in both directions; the ray is kept only where it meets a child's box).
-FALLBACK_LEVELS = 4
+FALLBACK_LEVELS = 2
 # A root whose ray makes an angle below asin(GRAZING_COS) with the tangent plane may have a
 # nearer twin root in the same sub-patch: two roots in one sub-patch need the normal to turn by
 # at least twice that angle, which the sub-patch normal cone (bezier.CONE_HALF_ANGLE_DEG) bounds.
@@ -234,9 +234,8 @@ class PatchTracer:
         """Newton on control nets ``ctrl`` (each covering the rectangle ``box`` = (s0, s1, t0, t1)
         of sub-patch ``sp``'s local coordinates) for rays ``r``; records hits nearer than best_t.
 
-        Pairs without a root, with a root outside the net although the ray crosses the net's
-        corner triangles, or with a grazing root (a nearer root may share
-        the net, also beside a root at the ray's own start), are split by de Casteljau into four children, kept where the ray still meets their boxes."""
+        Pairs without a root, or with a root outside the net although the ray crosses the net's
+        corner triangles, are split by de Casteljau into four children, kept where the ray still meets their boxes."""
         if len(r) == 0:
             return
         ro, rd = o[r], d[r]
@@ -256,9 +255,7 @@ class PatchTracer:
             & (t <= 1 + PARAM_MARGIN)
         # no root at all, or a root elsewhere although the ray crosses the net's corner triangles
         retry = ~ok | (~in_net & crossed)
-        found, suspicious = self._accept(o, d, tmin, best_t, res, r, ctrl, grp, sp, box, ok, s, t,
-                                         twin=True)
-        retry[found] |= suspicious
+        self._accept(o, d, tmin, best_t, res, r, ctrl, grp, sp, box, ok, s, t, twin=True)
         if levels > 0:
             self._subdivide(o, d, tmin, best_t, res, r, ctrl, grp, sp, box, levels,
                             np.flatnonzero(retry))
@@ -299,10 +296,13 @@ class PatchTracer:
         return ok
 
     def _accept(self, o, d, tmin, best_t, res, r, ctrl, grp, sp, box, ok, s, t, twin):
-        """Record converged roots that lie inside their Bezier piece and beat best_t. Returns
-        (indices of the accepted roots, mask over them of grazing roots, which call for a finer
-        look). With ``twin``, a grazing root's nearer twin
-        is sought by Newton from a seed one estimated chord length back along the ray."""
+        """Record converged roots that lie inside their Bezier piece and beat best_t.
+
+        With ``twin``, grazing roots get a second Newton run for their twin: two roots of one
+        ray in one flat net need a grazing ray (the net's normal cone bounds how far the surface
+        turns), and the twin lies about one chord length 2 |cos| / curvature along the ray:
+        behind a found root (a nearer hit), ahead of a root at the ray's own start (t <= tmin:
+        the next hit of a ray leaving the surface)."""
         s_sub = box[:, 0] + (box[:, 1] - box[:, 0]) * s
         t_sub = box[:, 2] + (box[:, 3] - box[:, 2]) * t
         ps = grp.ps0[sp] + (grp.ps1[sp] - grp.ps0[sp]) * s_sub
@@ -311,7 +311,7 @@ class PatchTracer:
             & (pt <= 1 + PARAM_MARGIN)
         good = np.flatnonzero(ok)
         if len(good) == 0:
-            return good, np.zeros(0, bool)
+            return
         P, Ps, Pt, Pss, Pst, Ptt = bz.bezier_eval(ctrl, s[good], t[good], derivatives=2,
                                                   index=good)
         rr = r[good]
@@ -321,37 +321,33 @@ class PatchTracer:
         ln = np.linalg.norm(nrm, axis=1)
         un = nrm / np.maximum(ln, 1e-300)[:, None]
         cos = np.einsum("ij,ij->i", un, dd)
-        grazing = np.abs(cos) < GRAZING_COS
-        # a second root beside this one in the same flat net needs a grazing ray (the net's
-        # normal cone bounds how far the surface can turn back); that covers roots at the
-        # ray's own start (t <= tmin) as well
-        suspicious = grazing
         cand = np.flatnonzero((tt > tmin[rr]) & (tt < best_t[rr]))
         order = cand[np.lexsort((tt[cand], rr[cand]))]
         first = order[np.r_[True, rr[order][1:] != rr[order][:-1]]] if len(order) else order
         self._record(res, best_t, grp, sp[good[first]], rr[first], tt[first], P[first],
                      Ps[first], Pt[first], nrm[first], ln[first], s_sub[good[first]],
                      t_sub[good[first]])
-        g = np.flatnonzero(grazing & (tt > tmin[rr]))
-        if twin and len(g):
-            # the ray direction within the tangent plane, in parameter units per unit length
-            w = dd[g] - cos[g, None] * un[g]
-            w /= np.maximum(np.linalg.norm(w, axis=1), 1e-300)[:, None]
-            a, b = _tangent_coords(Ps[g], Pt[g], w)
-            curv = np.abs(np.einsum("ij,ij->i", un[g], a[:, None] ** 2 * Pss[g]
-                                    + 2 * (a * b)[:, None] * Pst[g] + b[:, None] ** 2 * Ptt[g]))
-            chord = 2.0 * np.abs(cos[g]) / np.maximum(curv, 1e-300)
-            gi = good[g]
-            s2 = s[gi] - chord * a
-            t2 = t[gi] - chord * b
-            ro, rd = o[r[gi]], d[r[gi]]
-            n1, n2 = _ray_planes(rd)
-            c1 = np.einsum("ij,ij->i", n1, ro)
-            c2 = np.einsum("ij,ij->i", n2, ro)
-            ok2 = self._newton(ctrl[gi], s2, t2, n1, c1, n2, c2)
-            self._accept(o, d, tmin, best_t, res, r[gi], ctrl[gi], grp, sp[gi], box[gi], ok2,
-                         s2, t2, twin=False)
-        return good, suspicious
+        g = np.flatnonzero(np.abs(cos) < GRAZING_COS)
+        if not twin or len(g) == 0:
+            return
+        # the ray direction within the tangent plane, in parameter units per unit length
+        w = dd[g] - cos[g, None] * un[g]
+        w /= np.maximum(np.linalg.norm(w, axis=1), 1e-300)[:, None]
+        a, b = _tangent_coords(Ps[g], Pt[g], w)
+        curv = np.abs(np.einsum("ij,ij->i", un[g], a[:, None] ** 2 * Pss[g]
+                                + 2 * (a * b)[:, None] * Pst[g] + b[:, None] ** 2 * Ptt[g]))
+        chord = 2.0 * np.abs(cos[g]) / np.maximum(curv, 1e-300)
+        chord *= np.where(tt[g] > tmin[rr[g]], -1.0, 1.0)
+        gi = good[g]
+        s2 = s[gi] + chord * a
+        t2 = t[gi] + chord * b
+        ro, rd = o[r[gi]], d[r[gi]]
+        n1, n2 = _ray_planes(rd)
+        c1 = np.einsum("ij,ij->i", n1, ro)
+        c2 = np.einsum("ij,ij->i", n2, ro)
+        ok2 = self._newton(ctrl[gi], s2, t2, n1, c1, n2, c2)
+        self._accept(o, d, tmin, best_t, res, r[gi], ctrl[gi], grp, sp[gi], box[gi], ok2,
+                     s2, t2, twin=False)
 
     def _record(self, res, best_t, grp, spf, rr, tt, P, Ps, Pt, nrm, ln, s_sub, t_sub):
         """Store hits (one per ray) that beat the running best; (s_sub, t_sub) are sub-patch

@@ -1,0 +1,131 @@
+"""Interpolation weights shared by the bake (midpoint test) and the renderer (paper 4.1, 4.2,
+4.3, 5.1, 5.3): bilinear over four usable corners, barycentric over three, barycentric over the
+extra samples of one-/two-interpolant cells, the extrapolation threshold, and the pairwise
+angle/distance thresholds. Everything works on whole arrays of queries.
+
+Cell-local coordinates (lx, ly) are in [0, 1]^2; corners are ordered (0,0), (1,0), (0,1), (1,1).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+UNIT_CORNERS = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+
+# Status codes of an interpolation (ordered: a larger code is a weaker kind of answer).
+FAIL, BILINEAR, TRIANGLE, EXTRA, EXTRAPOLATED = 0, 1, 2, 3, 4
+
+# Barycentric coordinates down to -INSIDE_SLACK count as inside (queries exactly on an edge
+# of the triangle, rounding of cell-local coordinates ~1e-16).
+INSIDE_SLACK = 1e-12
+# Triangles whose doubled area (cell units, cell = 1 x 1) is below this are degenerate
+# (collinear extra samples, an extra sample on its corner): no weights, the ray is traced.
+DEGENERATE_AREA = 1e-9
+
+
+def bilinear_weights(lx, ly) -> np.ndarray:
+    """(N, 4) bilinear weights of the four corners."""
+    return np.stack([(1 - lx) * (1 - ly), lx * (1 - ly), (1 - lx) * ly, lx * ly], axis=1)
+
+
+def barycentric(q, tri):
+    """Barycentric coordinates (N, 3) of points q (N, 2) in triangles tri (N, 3, 2), and a mask
+    of non-degenerate triangles (degenerate rows get zeros)."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    e1, e2, w = b - a, c - a, q - a
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    ok = np.abs(det) > DEGENERATE_AREA
+    safe = np.where(ok, det, 1.0)
+    l1 = (w[:, 0] * e2[:, 1] - w[:, 1] * e2[:, 0]) / safe
+    l2 = (e1[:, 0] * w[:, 1] - e1[:, 1] * w[:, 0]) / safe
+    lam = np.stack([1 - l1 - l2, l1, l2], axis=1)
+    return np.where(ok[:, None], lam, 0.0), ok
+
+
+def triangle_status(lam, ok, extrapolation):
+    """Status of barycentric answers: TRIANGLE inside, EXTRAPOLATED outside but allowed
+    (``extrapolation`` is None = never, else the largest allowed distance below zero of the
+    smallest barycentric coordinate), FAIL otherwise."""
+    mn = lam.min(axis=1)
+    inside = ok & (mn >= -INSIDE_SLACK)
+    st = np.where(inside, TRIANGLE, FAIL)
+    if extrapolation is not None:
+        st = np.where(ok & ~inside & (mn >= -float(extrapolation)), EXTRAPOLATED, st)
+    return st
+
+
+def cell_weights(usable, lx, ly, extrapolation=None):
+    """Weights (N, 4) over a cell's corners from the usable ones: four -> bilinear, three ->
+    barycentric on their triangle (with the extrapolation rule), fewer -> FAIL (zero weights).
+    Returns (weights, status)."""
+    usable = np.asarray(usable, bool)
+    n = len(usable)
+    cnt = usable.sum(axis=1)
+    w = np.zeros((n, 4))
+    status = np.full(n, FAIL, np.int8)
+    four = cnt == 4
+    w[four] = bilinear_weights(lx[four], ly[four])
+    status[four] = BILINEAR
+    three = np.flatnonzero(cnt == 3)
+    if len(three):
+        idx = np.argsort(~usable[three], axis=1, kind="stable")[:, :3]   # the usable corners
+        lam, ok = barycentric(np.stack([lx[three], ly[three]], 1), UNIT_CORNERS[idx])
+        st = triangle_status(lam, ok, extrapolation)
+        good = st != FAIL
+        rows = three[good]
+        w[rows[:, None], idx[good]] = lam[good]
+        status[three] = st
+    return w, status
+
+
+def pick_triangle(q, tris, valid, extrapolation=None):
+    """Barycentric interpolation over the first of two candidate triangles that contains q,
+    else extrapolation over the last valid one (the paper's Figure 12(c) regions).
+
+    q (N, 2); tris (N, 2, 3, 2) vertex positions; valid (N, 2) which candidates exist.
+    Returns (which (N,) 0/1, lam (N, 3), status)."""
+    n = len(q)
+    which = np.zeros(n, np.int64)
+    lam = np.zeros((n, 3))
+    status = np.full(n, FAIL, np.int8)
+    lams, oks = [], []
+    for k in range(2):
+        l_k, ok_k = barycentric(q, tris[:, k])
+        lams.append(l_k)
+        oks.append(ok_k & valid[:, k])
+    # inside one of them
+    for k in (1, 0):
+        inside = oks[k] & (lams[k].min(axis=1) >= -INSIDE_SLACK)
+        which = np.where(inside, k, which)
+        lam = np.where(inside[:, None], lams[k], lam)
+        status = np.where(inside, TRIANGLE, status)
+    if extrapolation is not None:
+        last = np.where(valid[:, 1], 1, 0)
+        rows = np.arange(n)
+        l_last = np.stack(lams, 1)[rows, last]
+        ok_last = np.stack(oks, 1)[rows, last]
+        ext = (status == FAIL) & ok_last & (l_last.min(axis=1) >= -float(extrapolation))
+        which = np.where(ext, last, which)
+        lam = np.where(ext[:, None], l_last, lam)
+        status = np.where(ext, EXTRAPOLATED, status)
+    return which, lam, status
+
+
+def angle_between(a, b):
+    """Angle (radians) between unit vectors along the last axis, accurate for tiny angles."""
+    return 2.0 * np.arctan2(np.linalg.norm(a - b, axis=-1), np.linalg.norm(a + b, axis=-1))
+
+
+def pairwise_within(dirs, origins, used, max_angle=None, max_dist=None):
+    """Paper 5.3: True where every pair of used interpolants (N, K) has output directions
+    within ``max_angle`` radians and output origins within ``max_dist`` (None: no limit)."""
+    ok = np.ones(len(used), bool)
+    pair = used[:, :, None] & used[:, None, :]
+    if max_angle is not None:
+        cos = np.einsum("nkc,nlc->nkl", dirs, dirs)
+        ok &= ~np.any(pair & (cos < np.cos(max_angle)), axis=(1, 2))
+    if max_dist is not None:
+        diff = origins[:, :, None, :] - origins[:, None, :, :]
+        d2 = np.einsum("nklc,nklc->nkl", diff, diff)
+        ok &= ~np.any(pair & (d2 > max_dist * max_dist), axis=(1, 2))
+    return ok

@@ -1,0 +1,129 @@
+"""A forest of quadtrees in flat arrays, built level by level and searched for whole arrays of
+query points at once (one loop iteration per tree level, never per query).
+
+Every tree t covers the rectangle ``domain[t] = (x0, x1, y0, y1)``. Node k is the cell
+(ix, iy) of its tree's 2^level x 2^level grid; its children are the four consecutive nodes
+``child[k] + q`` with quadrant q = qx + 2 qy (qx = 1: upper x half). ``corner[k]`` holds the ids
+of the samples at the cell's corners in the order (x0,y0), (x1,y0), (x0,y1), (x1,y1).
+
+The same structure holds the viewpoint trees (six per RI-Tree; corners are viewpoint ids) and
+the direction trees (five per viewpoint; corners are ray-sample ids).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Corner offsets (dx, dy) of the corner slots.
+CORNERS = np.array([[0, 0], [1, 0], [0, 1], [1, 1]])
+
+
+@dataclass
+class Forest:
+    domain: np.ndarray      # (T, 4) float64 per-tree rectangle
+    root: np.ndarray        # (T,) int64 root node, -1 where the tree was not built
+    child: np.ndarray       # (K,) int64 first child, -1 for leaves
+    level: np.ndarray       # (K,) int8
+    ix: np.ndarray          # (K,) int32
+    iy: np.ndarray          # (K,) int32
+    corner: np.ndarray      # (K, 4) int64 corner sample ids (-1: not sampled)
+
+    @classmethod
+    def empty(cls, domain: np.ndarray) -> "Forest":
+        return cls(domain=np.asarray(domain, np.float64), root=-np.ones(len(domain), np.int64),
+                   child=np.zeros(0, np.int64), level=np.zeros(0, np.int8),
+                   ix=np.zeros(0, np.int32), iy=np.zeros(0, np.int32),
+                   corner=np.zeros((0, 4), np.int64))
+
+    @property
+    def max_level(self) -> int:
+        return int(self.level.max()) if len(self.level) else 0
+
+    def add_roots(self, trees: np.ndarray) -> np.ndarray:
+        """Create root nodes for ``trees``; returns their node ids."""
+        ids = self._append(len(trees), 0, np.zeros(len(trees), np.int32),
+                           np.zeros(len(trees), np.int32))
+        self.root[trees] = ids
+        return ids
+
+    def split(self, nodes: np.ndarray) -> np.ndarray:
+        """Give leaf ``nodes`` four children each; returns the (len(nodes), 4) child ids."""
+        n = len(nodes)
+        lv = self.level[nodes].astype(np.int64) + 1
+        ix = np.repeat(2 * self.ix[nodes], 4) + np.tile(CORNERS[:, 0], n)
+        iy = np.repeat(2 * self.iy[nodes], 4) + np.tile(CORNERS[:, 1], n)
+        ids = self._append(4 * n, np.repeat(lv, 4), ix, iy)
+        self.child[nodes] = ids[::4]
+        return ids.reshape(n, 4)
+
+    def _append(self, n, level, ix, iy) -> np.ndarray:
+        start = len(self.child)
+        self.child = np.concatenate([self.child, -np.ones(n, np.int64)])
+        self.level = np.concatenate([self.level, np.broadcast_to(level, (n,)).astype(np.int8)])
+        self.ix = np.concatenate([self.ix, np.asarray(ix, np.int32)])
+        self.iy = np.concatenate([self.iy, np.asarray(iy, np.int32)])
+        self.corner = np.concatenate([self.corner, -np.ones((n, 4), np.int64)])
+        return np.arange(start, start + n)
+
+    def tree_of_nodes(self) -> np.ndarray:
+        """(K,) tree index of every node (by walking down from the roots, level by level)."""
+        tree = -np.ones(len(self.child), np.int64)
+        built = np.flatnonzero(self.root >= 0)
+        tree[self.root[built]] = built
+        frontier = self.root[built]
+        while len(frontier):
+            frontier = frontier[self.child[frontier] >= 0]
+            kids = (self.child[frontier][:, None] + np.arange(4)).ravel()
+            tree[kids] = np.repeat(tree[frontier], 4)
+            frontier = kids
+        return tree
+
+    def normalized(self, trees, x, y):
+        """Query coordinates mapped to [0, 1]^2 of their trees' domains (clamped)."""
+        d = self.domain[trees]
+        fx = np.clip((x - d[:, 0]) / (d[:, 1] - d[:, 0]), 0.0, 1.0)
+        fy = np.clip((y - d[:, 2]) / (d[:, 3] - d[:, 2]), 0.0, 1.0)
+        return fx, fy
+
+    def locate(self, trees, x, y):
+        """Leaf containing each query point (x, y) of tree ``trees``: returns (node, lx, ly)
+        with (lx, ly) in [0, 1]^2 the point's coordinates inside the leaf cell; node = -1 where
+        the tree was not built. Points on a shared cell edge go to the upper cell, except at
+        the domain's upper end (clamped into the last cell)."""
+        fx, fy = self.normalized(trees, x, y)
+        node = self.root[trees].copy()
+        ok = node >= 0
+        nd = np.where(ok, node, 0)
+        while True:
+            ch = np.where(ok, self.child[nd], -1) if len(nd) else nd
+            go = ch >= 0
+            if not np.any(go):
+                break
+            g = np.flatnonzero(go)
+            scale = np.exp2(self.level[nd[g]].astype(np.float64) + 1.0)
+            qx = np.minimum(np.floor(fx[g] * scale), 2 * self.ix[nd[g]] + 1) - 2 * self.ix[nd[g]]
+            qy = np.minimum(np.floor(fy[g] * scale), 2 * self.iy[nd[g]] + 1) - 2 * self.iy[nd[g]]
+            nd[g] = ch[g] + np.clip(qx, 0, 1).astype(np.int64) + 2 * np.clip(qy, 0, 1).astype(np.int64)
+        scale = np.exp2(self.level[nd].astype(np.float64))
+        lx = np.clip(fx * scale - self.ix[nd], 0.0, 1.0)
+        ly = np.clip(fy * scale - self.iy[nd], 0.0, 1.0)
+        return np.where(ok, nd, -1), lx, ly
+
+    def corner_coords(self, nodes, max_level):
+        """(len(nodes), 4, 2) integer corner coordinates on the tree's 2^max_level grid."""
+        sh = (max_level - self.level[nodes].astype(np.int64))[:, None]
+        cx = (self.ix[nodes].astype(np.int64)[:, None] + CORNERS[:, 0]) << sh
+        cy = (self.iy[nodes].astype(np.int64)[:, None] + CORNERS[:, 1]) << sh
+        return np.stack([cx, cy], axis=2)
+
+    def arrays(self, prefix: str) -> dict[str, np.ndarray]:
+        """The forest as named arrays (for the cache file)."""
+        return {f"{prefix}.{k}": getattr(self, k) for k in
+                ("domain", "root", "child", "level", "ix", "iy", "corner")}
+
+    @classmethod
+    def from_arrays(cls, arrays, prefix: str) -> "Forest":
+        return cls(**{k: arrays[f"{prefix}.{k}"] for k in
+                      ("domain", "root", "child", "level", "ix", "iy", "corner")})

@@ -1,0 +1,139 @@
+"""The RI-Tree container (paper 3.2): viewpoint trees on the faces of the object's padded
+bounding box, direction trees (five per viewpoint) on the inward hemicube, the ray samples
+they share, and the extra samples of two-class leaf cells (paper 4.3).
+
+Viewpoint tree f covers box face f (numbering as ``dircube``), in the face's (u, v) world axes
+``UV_AXES[f // 2]``. Direction tree ``5 * vp + slot`` covers hemicube slot ``slot`` of
+viewpoint ``vp``; ``dir_rect`` is the part of its domain that was baked (a query outside is
+traced). Samples store f's answer for the corner rays: output ray, first hit point and normal
+(float32), first patch (-1: the ray misses the object), null flag, ray-tree hash.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from .quadtree import Forest
+
+SAMPLE_FIELDS = ("out_o", "out_d", "point", "normal", "patch", "null", "tree")
+
+
+@dataclass
+class BakeParams:
+    """Bake settings. Angles in degrees, distances relative to the object's box diagonal."""
+
+    viewpoint_depth: int = 5          # uniform viewpoint-tree depth (paper: 5)
+    direction_depth: int = 6          # maximum direction-tree depth (paper: 6)
+    min_direction_depth: int = 1      # direction trees are split at least this deep
+    tolerance_deg: float = 0.5        # split while the midpoint's interpolated output ray ...
+    tolerance_dist: float = 0.002     # ... (or first hit / normal) misses the traced one by more
+    search_steps: int = 8             # binary-search steps for the extra samples (paper 4.3)
+    pad: float = 1e-3                 # bounding-box padding, relative to the diagonal
+
+    def validate(self) -> "BakeParams":
+        checks = [
+            (1 <= self.viewpoint_depth <= 9, "viewpoint_depth must be in 1..9"),
+            (1 <= self.direction_depth <= 10, "direction_depth must be in 1..10"),
+            (0 <= self.min_direction_depth <= self.direction_depth,
+             "min_direction_depth must be in 0..direction_depth"),
+            (np.isfinite(self.tolerance_deg) and self.tolerance_deg > 0, "tolerance_deg must be > 0"),
+            (np.isfinite(self.tolerance_dist) and self.tolerance_dist > 0,
+             "tolerance_dist must be > 0"),
+            (0 <= self.search_steps <= 30, "search_steps must be in 0..30"),
+            (np.isfinite(self.pad) and 0 <= self.pad <= 0.5, "pad must be in [0, 0.5]"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise ValueError(f"bake parameters: {msg} (got {asdict(self)})")
+        return self
+
+
+@dataclass
+class Samples:
+    """Ray samples (S of them); float32 geometry, int32 patch ids."""
+
+    out_o: np.ndarray
+    out_d: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
+    patch: np.ndarray
+    null: np.ndarray
+    tree: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "Samples":
+        z3 = np.zeros((0, 3), np.float32)
+        return cls(z3, z3.copy(), z3.copy(), z3.copy(), np.zeros(0, np.int32),
+                   np.zeros(0, bool), np.zeros(0, np.uint32))
+
+    @classmethod
+    def from_rays(cls, res) -> "Samples":
+        """From an ``ObjectRays`` result (trace.objectfn)."""
+        return cls(res.out_o.astype(np.float32) if hasattr(res, "out_o") else
+                   res.out_origin.astype(np.float32), res.out_dir.astype(np.float32),
+                   res.point.astype(np.float32), res.normal.astype(np.float32),
+                   res.patch.astype(np.int32), res.null.astype(bool), res.tree.astype(np.uint32))
+
+    def __len__(self) -> int:
+        return len(self.patch)
+
+    def extend(self, other: "Samples") -> np.ndarray:
+        """Append ``other``; returns the new ids."""
+        start = len(self)
+        for k in SAMPLE_FIELDS:
+            setattr(self, k, np.concatenate([getattr(self, k), getattr(other, k)]))
+        return np.arange(start, len(self))
+
+
+@dataclass
+class RITree:
+    params: BakeParams
+    box_lo: np.ndarray                # (3,) padded bounding box
+    box_hi: np.ndarray
+    diag: float                       # the object's (unpadded) box diagonal
+    class_of: np.ndarray              # (P,) class id of each patch
+    vp_forest: Forest                 # 6 trees, corners = viewpoint ids
+    vp_pos: np.ndarray                # (V, 3) viewpoint positions
+    vp_face: np.ndarray               # (V,) box face of each viewpoint
+    dir_forest: Forest                # 5 V trees, corners = sample ids
+    dir_rect: np.ndarray              # (5 V, 4) baked part of each direction tree's domain
+    samples: Samples
+    ex_node: np.ndarray               # (E,) sorted leaf nodes of dir_forest with extra samples
+    ex_kind: np.ndarray               # (E,) 1 = one-interpolant, 2 = two-interpolant cell
+    ex_ids: np.ndarray                # (E, 4) sample ids v1..v4
+    ex_pos: np.ndarray                # (E, 4, 2) their cell-local (lx, ly)
+    ex_corner: np.ndarray             # (E, 4) corner slots: see bake._extras
+    meta: dict = field(default_factory=dict)
+
+    def sample_class(self, ids: np.ndarray) -> np.ndarray:
+        """Class of sample ids (-1: misses the object)."""
+        p = self.samples.patch[ids]
+        return np.where(p >= 0, self.class_of[np.maximum(p, 0)], -1)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        out = {"box_lo": self.box_lo, "box_hi": self.box_hi, "class_of": self.class_of,
+               "vp_pos": self.vp_pos, "vp_face": self.vp_face, "dir_rect": self.dir_rect,
+               "ex_node": self.ex_node, "ex_kind": self.ex_kind, "ex_ids": self.ex_ids,
+               "ex_pos": self.ex_pos, "ex_corner": self.ex_corner}
+        out.update(self.vp_forest.arrays("vp"))
+        out.update(self.dir_forest.arrays("dir"))
+        out.update({f"s.{k}": getattr(self.samples, k) for k in SAMPLE_FIELDS})
+        return out
+
+    def header(self) -> dict:
+        return {"params": asdict(self.params), "diag": self.diag, **self.meta}
+
+    @classmethod
+    def from_parts(cls, header: dict, arrays: dict) -> "RITree":
+        a = arrays
+        return cls(params=BakeParams(**header["params"]).validate(), box_lo=a["box_lo"],
+                   box_hi=a["box_hi"], diag=float(header["diag"]), class_of=a["class_of"],
+                   vp_forest=Forest.from_arrays(a, "vp"), vp_pos=a["vp_pos"],
+                   vp_face=a["vp_face"], dir_forest=Forest.from_arrays(a, "dir"),
+                   dir_rect=a["dir_rect"],
+                   samples=Samples(**{k: a[f"s.{k}"] for k in SAMPLE_FIELDS}),
+                   ex_node=a["ex_node"], ex_kind=a["ex_kind"], ex_ids=a["ex_ids"],
+                   ex_pos=a["ex_pos"], ex_corner=a["ex_corner"],
+                   meta={k: v for k, v in header.items() if k not in ("params", "diag")})
