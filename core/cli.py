@@ -33,9 +33,92 @@ def _load(path):
     return load_scene(path)
 
 
+def _query_options(args):
+    from .ritree.query import QueryOptions
+    return QueryOptions(policy=args.policy, extrapolation=args.extrapolation,
+                        angle_deg=None if args.angle < 0 else args.angle,
+                        distance=None if args.distance < 0 else args.distance).validate()
+
+
+def _tree_opts(p):
+    p.add_argument("--policy", choices=("ri", "raytree"), default="ri",
+                   help="ri: the paper's heuristics; raytree: Bala et al.'s identical-ray-tree rule")
+    p.add_argument("--extrapolation", type=float, default=None, metavar="T",
+                   help="allow extrapolation up to barycentric distance T (default: off)")
+    p.add_argument("--angle", type=float, default=20.0, metavar="DEG",
+                   help="pairwise angle threshold between interpolants in degrees (-1: off)")
+    p.add_argument("--distance", type=float, default=-1.0, metavar="REL",
+                   help="pairwise output-origin distance threshold, relative to the object's "
+                   "box diagonal (-1: off, the default)")
+
+
+def _bake_opts(p):
+    from .ritree.tree import BakeParams
+    d = BakeParams()
+    p.add_argument("--viewpoint-depth", type=int, default=d.viewpoint_depth)
+    p.add_argument("--direction-depth", type=int, default=d.direction_depth)
+    p.add_argument("--min-direction-depth", type=int, default=d.min_direction_depth)
+    p.add_argument("--tolerance", type=float, default=d.tolerance_deg, metavar="DEG",
+                   help="bake angular tolerance (degrees)")
+    p.add_argument("--tolerance-dist", type=float, default=d.tolerance_dist, metavar="REL",
+                   help="bake distance tolerance, relative to the object's box diagonal")
+    p.add_argument("--search-steps", type=int, default=d.search_steps,
+                   help="binary-search steps for the extra samples")
+    p.add_argument("--full", action="store_true",
+                   help="bake every viewpoint cell (default: only what the cameras need)")
+    p.add_argument("--cameras", default=None,
+                   help="comma-separated camera names to bake for (default: all)")
+
+
+def _bake(scene, args, out, st):
+    from .ritree import tree as ritree
+    from .ritree.bake import bake
+    from .ritree.region import region_for_cameras
+    params = ritree.BakeParams(
+        viewpoint_depth=args.viewpoint_depth, direction_depth=args.direction_depth,
+        min_direction_depth=args.min_direction_depth, tolerance_deg=args.tolerance,
+        tolerance_dist=args.tolerance_dist, search_steps=args.search_steps).validate()
+    region = None
+    if not args.full:
+        names = args.cameras.split(",") if args.cameras else [c.name for c in scene.cameras]
+        cams = [scene.camera(n) for n in names]
+        region = region_for_cameras(st, params, cams, scene.render.width, scene.render.height)
+    bar = _progress("bake")
+    tree = bake(st, params, region, progress=lambda f, msg: bar(f), workers=args.workers)
+    ritree.save(tree, out)
+    return tree
+
+
+def cmd_bake(args):
+    from .render.exact import SceneTracer
+    scene = _load(args.scene)
+    st = SceneTracer(scene)
+    tree = _bake(scene, args, args.out, st)
+    print(json.dumps({"written": args.out, **tree.meta}, indent=2))
+    return 0
+
+
+def cmd_info(args):
+    from .ritree.cache import describe
+    info = describe(args.tree)
+    print(json.dumps(info, indent=2, default=str))
+    return 0
+
+
 def cmd_render(args):
     from .render.exact import render_exact, save_render
     scene = _load(args.scene)
+    if args.tree:
+        from .render.interpolated import render_tree, save_tree_render
+        from .ritree import tree as ritree
+        tree = ritree.load(args.tree, scene)
+        res = render_tree(scene, tree, camera=args.camera, width=args.width, height=args.height,
+                          options=_query_options(args), reference=not args.no_reference,
+                          workers=args.workers,
+                          progress=None if args.quiet else _progress("render"))
+        paths = save_tree_render(res, args.out)
+        print(json.dumps({"written": [str(p) for p in paths], **res.stats["summary"]}, indent=2))
+        return 0
     res = render_exact(scene, camera=args.camera, width=args.width, height=args.height,
                        workers=args.workers, progress=None if args.quiet else _progress("render"))
     paths = save_render(res, args.out)
@@ -43,20 +126,57 @@ def cmd_render(args):
     return 0
 
 
+RAY_CHUNK = 8192   # rays per trace-rays work chunk (progress granularity, memory bound)
+
+
+def _load_rays(path):
+    """An N x 6 float64 ray array from a .npy file; ValueError (one line) unless every row is
+    finite with a non-zero direction."""
+    try:
+        rays = np.load(path, allow_pickle=False)
+    except ValueError as e:
+        raise ValueError(f"{path}: not a .npy array file ({e})") from None
+    if not isinstance(rays, np.ndarray):
+        raise ValueError(f"{path}: expected a .npy file holding one array (got an .npz archive)")
+    if rays.dtype.kind not in "fiu":
+        raise ValueError(f"{path}: expected a numeric N x 6 array (got dtype {rays.dtype})")
+    if rays.ndim != 2 or rays.shape[1] != 6:
+        raise ValueError(f"{path}: expected an N x 6 array (origin xyz, direction xyz), "
+                         f"got shape {rays.shape}")
+    rays = rays.astype(np.float64)
+    bad = ~np.isfinite(rays)
+    if bad.any():
+        i, j = (int(x) for x in np.argwhere(bad)[0])
+        raise ValueError(f"{path}: row {i} column {j} is not finite ({rays[i, j]!r})")
+    zero = ~(np.linalg.norm(rays[:, 3:], axis=1) > 0)
+    if zero.any():
+        raise ValueError(f"{path}: direction of row {int(np.argmax(zero))} is zero")
+    return rays
+
+
 def cmd_trace_rays(args):
     from .render.exact import SceneTracer
     scene = _load(args.scene)
-    rays = np.load(args.rays)
-    if rays.ndim != 2 or rays.shape[1] != 6 or not np.all(np.isfinite(rays)):
-        raise SystemExit(f"{args.rays}: expected a finite N x 6 array (origin, direction), "
-                         f"got shape {rays.shape}")
+    rays = _load_rays(args.rays)
     d = rays[:, 3:]
     ln = np.linalg.norm(d, axis=1)
-    if np.any(ln == 0):
-        raise SystemExit(f"{args.rays}: direction of row {int(np.argmin(ln))} is zero")
     st = SceneTracer(scene)
-    out = st.object_function(rays[:, :3], d / ln[:, None])
-    np.savez_compressed(args.out, **{k: v for k, v in out.__dict__.items()})
+    extra = {}
+    if args.tree:
+        from .ritree import tree as ritree
+        from .ritree.query import TreeQuery
+        tq = TreeQuery(ritree.load(args.tree, scene), st, _query_options(args))
+        out, answers, why, _ = tq(rays[:, :3], d / ln[:, None])
+        extra = {"answer": answers, "traced_because": why}
+    else:
+        from .parallel import map_chunks
+        from .trace.objectfn import ObjectRays
+        o, u = rays[:, :3], d / ln[:, None]
+        parts = map_chunks(lambda a, b: st.object_function(o[a:b], u[a:b]), len(rays),
+                           RAY_CHUNK, args.workers, None if args.quiet else _progress("trace"))
+        out = ObjectRays(**{k: np.concatenate([p.__dict__[k] for p in parts])
+                            for k in parts[0].__dict__}) if parts else st.object_function(o, u)
+    np.savez_compressed(args.out, **{k: v for k, v in out.__dict__.items()}, **extra)
     print(f"{args.out}: {len(rays)} rays, {int(out.hit.sum())} hit the object, "
           f"{int(out.null.sum())} null")
     return 0
@@ -71,19 +191,39 @@ def cmd_validate(args):
 
 
 def cmd_demo(args):
-    from .render.exact import render_exact, save_render
+    from .render.exact import SceneTracer
+    from .render.interpolated import render_tree, save_tree_render
     from .scene.samples import build
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     scene = build(args.scene)
-    res = render_exact(scene, camera=args.camera, width=args.size, height=args.size,
-                       workers=args.workers, progress=_progress(f"exact render of {args.scene}"))
-    paths = save_render(res, out / "exact")
-    print(f"demo: {args.scene} / camera {args.camera} at {args.size}x{args.size}")
-    for p in paths:
+    scene.render.width = scene.render.height = args.size
+    st = SceneTracer(scene)
+    args.cameras = args.camera
+    print(f"demo: {args.scene} / camera {args.camera} at {args.size}x{args.size}: "
+          f"baking the RI-Tree (viewpoint depth {args.viewpoint_depth}, direction depth "
+          f"{args.direction_depth}) for this camera")
+    tree = _bake(scene, args, out / "tree.rit", st)
+    res = render_tree(scene, tree, camera=args.camera, options=_query_options(args),
+                      reference=True, workers=args.workers, st=st,
+                      progress=_progress("interpolated + exact render"))
+    res.stats["bake"] = tree.meta
+    paths = save_tree_render(res, out)
+    for p in [out / "tree.rit", *paths]:
         print(f"  wrote {p}")
-    print(json.dumps(res.stats["summary"], indent=2))
+    print(json.dumps({"bake": tree.meta, **res.stats["summary"]}, indent=2))
     print(f"demo output folder: {out.resolve()}")
+    return 0
+
+
+def cmd_bench_exact(args):
+    from .bench.exact_bench import run, table
+    res = run(args.scenes, size=args.size, camera=args.camera, workers=args.workers, out=args.out,
+              progress_factory=None if args.quiet else _progress)
+    print(f"{res['settings']['command']}  ({res['machine']['cpu_count']} cores, "
+          f"{res['machine']['processor']}, numpy {res['machine']['numpy']})")
+    print(table(res["rows"]))
+    print(f"wrote {args.out}")
     return 0
 
 
@@ -104,28 +244,68 @@ def build_parser():
     p.add_argument("--height", type=int, default=None, help="pixels (default: the scene's)")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--tree", default=None, help="render through this baked RI-Tree (.rit); "
+                   "--out is then a folder (interpolated, exact, traced mask, error, stats)")
+    p.add_argument("--no-reference", action="store_true",
+                   help="with --tree: skip the exact reference render and error statistics")
+    _tree_opts(p)
     p.set_defaults(fn=cmd_render)
+
+    p = sub.add_parser("bake", help="bake the object's RI-Tree into a .rit cache file")
+    scene_arg(p)
+    p.add_argument("--out", required=True, help="the .rit file to write (atomically)")
+    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    _bake_opts(p)
+    p.set_defaults(fn=cmd_bake)
+
+    p = sub.add_parser("info", help="print a .rit file's parameters, region, counts and size")
+    p.add_argument("tree")
+    p.set_defaults(fn=cmd_info)
 
     p = sub.add_parser("trace-rays", help="apply the object function f to a batch of rays",
                        description="Input: an N x 6 float64 .npy (origin xyz, direction xyz). "
                        "Output .npz arrays: hit, null, out_origin, out_dir, t_first, point, "
                        "normal, patch, cls, events, refl_dir, fresnel (see docs/cli.md).")
     scene_arg(p)
-    p.add_argument("--rays", required=True)
-    p.add_argument("--out", required=True)
+    p.add_argument("--rays", required=True, help="input .npy: N x 6 float64 rows (ox, oy, oz, "
+                   "dx, dy, dz); directions need not be unit but must be non-zero")
+    p.add_argument("--out", required=True, help="output .npz (the suffix is added if missing)")
+    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--tree", default=None, help="answer through this baked RI-Tree (.rit); "
+                   "adds arrays 'answer' and 'traced_because'")
+    _tree_opts(p)
     p.set_defaults(fn=cmd_trace_rays)
+
+    from .scene.samples import SAMPLES
+    p = sub.add_parser("bench-exact", help="benchmark the exact tracer on the sample scenes",
+                       description="Exact render of each sample scene's view: build time, wall "
+                       "time, object-only and total time, object rays/s, pairs and Newton "
+                       "iterations per object ray. Prints a table; writes JSON.")
+    p.add_argument("--scenes", nargs="+", choices=SAMPLES, default=list(SAMPLES),
+                   help="sample scenes (default: all)")
+    p.add_argument("--size", type=int, default=300, help="image side in pixels (default: 300)")
+    p.add_argument("--camera", default="close", help="camera name (default: close)")
+    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.add_argument("--out", default="bench_exact.json", help="JSON file to write "
+                   "(default: bench_exact.json)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(fn=cmd_bench_exact)
 
     p = sub.add_parser("validate", help="load and validate a scene file")
     p.add_argument("scene")
     p.set_defaults(fn=cmd_validate)
 
-    p = sub.add_parser("demo", help="render a bundled sample scene into a folder")
+    p = sub.add_parser("demo", help="bake a sample scene's RI-Tree for one camera and render "
+                       "it interpolated beside the exact render, into a folder")
     p.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     p.add_argument("--scene", default="glass_sphere", help="sample scene name")
     p.add_argument("--camera", default="close")
     p.add_argument("--size", type=int, default=300)
     p.add_argument("--workers", type=int, default=None)
-    p.set_defaults(fn=cmd_demo)
+    _bake_opts(p)
+    _tree_opts(p)
+    p.set_defaults(fn=cmd_demo, viewpoint_depth=4, direction_depth=5)
     return ap
 
 

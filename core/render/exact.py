@@ -22,7 +22,7 @@ from ..geometry.tessellate import tessellate
 from ..parallel import map_chunks
 from ..scene.model import Mesh, Scene
 from ..trace.meshes import MeshSet
-from ..trace.objectfn import ObjectRays, trace_object
+from ..trace.objectfn import SECONDARY_T_MIN_REL, ObjectRays, trace_object
 from ..trace.patches import PatchTracer
 from ..trace.shading import Environment, local_illumination
 from .camera import camera_rays
@@ -74,6 +74,39 @@ def slab_entry(o, d, lo, hi):
     return np.where(tn <= tf, tn, np.inf)
 
 
+# Camera-inside test: rays from the camera position in these fixed directions (unit after
+# normalization; generic, so they avoid the axes, poles and seams of revolved samples) count
+# their crossings of the object until they escape; an odd count for the majority means inside.
+INSIDE_DIRS = np.array([[0.267, 0.534, 0.802], [-0.713, 0.297, -0.635], [0.439, -0.818, 0.371],
+                        [-0.182, -0.391, -0.902], [0.858, 0.137, -0.495], [-0.577, 0.761, 0.296],
+                        [0.093, -0.274, 0.957]])
+INSIDE_DIRS = INSIDE_DIRS / np.linalg.norm(INSIDE_DIRS, axis=1)[:, None]
+INSIDE_MAX_CROSSINGS = 64   # a direction still hitting after this many is left out of the vote
+
+
+def point_inside(st: SceneTracer, p) -> bool:
+    """Whether ``p`` lies inside the object (crossing parity along INSIDE_DIRS, majority vote);
+    False without tracing when ``p`` is outside the object's bounding box."""
+    p = np.asarray(p, dtype=np.float64)
+    if np.any(p < st.box_lo) or np.any(p > st.box_hi):
+        return False
+    k = len(INSIDE_DIRS)
+    o, d = np.tile(p, (k, 1)), INSIDE_DIRS.copy()
+    crossings = np.zeros(k, np.int64)
+    live = np.arange(k)
+    tmin = SECONDARY_T_MIN_REL * st.tracer.diag
+    for _ in range(INSIDE_MAX_CROSSINGS):
+        h = st.tracer.intersect(o[live], d[live], tmin=np.full(len(live), tmin))
+        live = live[h.hit]
+        if len(live) == 0:
+            break
+        crossings[live] += 1
+        o[live] = h.point[h.hit]
+    decided = np.ones(k, bool)
+    decided[live] = False
+    return int((crossings[decided] % 2 == 1).sum()) * 2 > int(decided.sum())
+
+
 def _proxy_mesh(patch) -> Mesh:
     if patch.surface is None:
         return Mesh(name=patch.name, vertices=patch.vertices, triangles=patch.triangles, material="")
@@ -107,10 +140,10 @@ class RenderResult:
     masks: dict = field(default_factory=dict)   # name -> (H, W) bool or float images
 
 
-def render_pixels(st: SceneTracer, origins, dirs, object_fn) -> tuple[np.ndarray, dict]:
+def render_pixels(st: SceneTracer, origins, dirs, object_fn):
     """Colours of camera rays; ``object_fn(o, d, tmax) -> (ObjectRays, extra)`` answers the rays
     that may reach the object (exact tracing, or the RI-Tree). Returns (colours, stats, indices
-    of the rays that hit the object)."""
+    of the rays that hit the object, indices of the rays handed to ``object_fn``)."""
     t0 = time.perf_counter()
     n = len(origins)
     col = np.zeros((n, 3))
@@ -129,7 +162,7 @@ def render_pixels(st: SceneTracer, origins, dirs, object_fn) -> tuple[np.ndarray
     stats = {"camera_rays": n, "object_candidates": len(cand), "object_hits": len(hit),
              "events": int(obj.events.sum()), "object_time_s": t_obj,
              "total_time_s": time.perf_counter() - t0, **counts, **extra}
-    return col, stats, hit
+    return col, stats, hit, cand
 
 
 def _merge(stats_list):
@@ -149,6 +182,8 @@ def render_exact(scene: Scene, camera=None, width=None, height=None, workers=Non
     wall0 = time.perf_counter()
     st = st or SceneTracer(scene)
     build_s = time.perf_counter() - wall0
+    if point_inside(st, np.asarray(cam.matrix_world, dtype=np.float64)[:3, 3]):
+        raise ValueError(f"camera {cam.name!r} is inside the object {scene.object.name!r}")
     o, d = camera_rays(cam, w, h)
 
     def exact_fn(oo, dd, tmax):
@@ -157,7 +192,7 @@ def render_exact(scene: Scene, camera=None, width=None, height=None, workers=Non
         return res, {k: st.tracer.stats[k] - before[k] for k in before}
 
     def work(a, b):
-        c, s, hit = render_pixels(st, o[a:b], d[a:b], exact_fn)
+        c, s, hit, _ = render_pixels(st, o[a:b], d[a:b], exact_fn)
         return c, s, hit + a
 
     wall1 = time.perf_counter()

@@ -23,9 +23,11 @@ import time
 import numpy as np
 
 from ..parallel import map_chunks
+from .cache import fingerprint
 from .dircube import CUBE, DOMAIN, N_SLOTS, UV_AXES, cube_to_dir
 from .interp import FAIL, angle_between, cell_weights
 from .quadtree import CORNERS, Forest
+from .region import Region
 from .tree import BakeParams, RITree, Samples
 
 TRACE_CHUNK = 8192          # rays per worker task (bounds worker memory, keeps progress fluid)
@@ -34,21 +36,6 @@ SLOT_PROBE = 17             # probe rays per slot side when testing whether a sl
 
 class BakeCancelled(Exception):
     """The bake was cancelled; nothing was written."""
-
-
-class Region:
-    """What to bake: per box face, a boolean mask over the 2^D x 2^D viewpoint cells, and per
-    (face, cell) optionally a set of hemicube slots. None masks mean everything."""
-
-    def __init__(self, cells: np.ndarray | None = None, slots: np.ndarray | None = None):
-        self.cells = cells          # (6, 2^D, 2^D) bool
-        self.slots = slots          # (6, 2^D, 2^D, 5) bool
-
-    def describe(self) -> dict:
-        if self.cells is None:
-            return {"kind": "full"}
-        return {"kind": "cells", "faces": [int(f) for f in np.flatnonzero(self.cells.any((1, 2)))],
-                "cells": int(self.cells.sum())}
 
 
 class _Tracer:
@@ -244,7 +231,8 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
                   class_of=class_of.astype(np.int64), vp_forest=vpf, vp_pos=vp_pos,
                   vp_face=vface.astype(np.int64), dir_forest=dirf, dir_rect=dom.copy(),
                   samples=samples, **ex,
-                  meta={"region": (region or Region()).describe(),
+                  meta={"fingerprint": fingerprint(st.scene.object, st.scene.render.max_events),
+                        "region": (region or Region()).describe(),
                         "bake_seconds": round(time.perf_counter() - t0, 3),
                         "rays_traced": int(tracer.rays), "viewpoints": int(V),
                         "direction_trees": int(len(trees)), "samples": int(len(samples)),

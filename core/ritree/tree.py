@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from .cache import fingerprint, load_tree, save_tree
 from .quadtree import Forest
 
 SAMPLE_FIELDS = ("out_o", "out_d", "point", "normal", "patch", "null", "tree")
@@ -137,3 +138,16 @@ class RITree:
                    ex_node=a["ex_node"], ex_kind=a["ex_kind"], ex_ids=a["ex_ids"],
                    ex_pos=a["ex_pos"], ex_corner=a["ex_corner"],
                    meta={k: v for k, v in header.items() if k not in ("params", "diag")})
+
+
+def save(tree: RITree, path) -> None:
+    """Write ``tree`` to a .rit cache file (atomically; see ritree.cache)."""
+    save_tree(path, tree.header(), tree.arrays())
+
+
+def load(path, scene=None, mmap: bool = True) -> RITree:
+    """Read a .rit cache file. With ``scene``, refuse a tree baked for another geometry or
+    material of the scene's object (StaleTreeError)."""
+    expect = None if scene is None else fingerprint(scene.object, scene.render.max_events)
+    header, arrays = load_tree(path, mmap=mmap, expect_fingerprint=expect)
+    return RITree.from_parts(header, arrays)
