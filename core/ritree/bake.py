@@ -145,15 +145,17 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
 
     # ---- which hemicube slots each viewpoint needs
     slots = _slots_seeing(vp_pos, vface, lo, hi)
-    if region is not None and region.slots is not None:
-        need = np.zeros_like(slots)
-        wl = np.flatnonzero(want)
-        np.logical_or.at(need, corner[wl].ravel(), np.repeat(
-            region.slots[face[wl], lix[wl], liy[wl]], 4, axis=0))
-        slots &= need
-
     V = len(vp_pos)
     dom = DOMAIN[vface].reshape(V * N_SLOTS, 4)
+    rect = dom.copy()
+    if region is not None and region.tree_keys is not None:
+        tk = (uniq[:, None] * N_SLOTS + np.arange(N_SLOTS)).ravel()
+        pos = np.clip(np.searchsorted(region.tree_keys, tk), 0, max(len(region.tree_keys) - 1, 0))
+        found = (region.tree_keys[pos] == tk) if len(region.tree_keys) else np.zeros(len(tk), bool)
+        slots &= found.reshape(V, N_SLOTS)
+        r = region.rects[pos[found]]
+        rect[found] = np.stack([np.maximum(r[:, 0], dom[found, 0]), np.minimum(r[:, 1], dom[found, 1]),
+                                np.maximum(r[:, 2], dom[found, 2]), np.minimum(r[:, 3], dom[found, 3])], 1)
     dirf = Forest.empty(dom)
     trees = np.flatnonzero(slots.ravel())
     tracer = _Tracer(st, vp_pos, workers, lambda f: None, cancel)
@@ -189,13 +191,18 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
     tol_ang = np.radians(params.tolerance_deg)
     tol_d = params.tolerance_dist * diag
     class_of = st.tracer.class_of
-    split_total = 0
     for level in range(M):
         report(level, 0.0, f"direction level {level}")
         if len(nodes) == 0:
             break
         tr = dirf.tree_of_nodes()[nodes]
         cc = dirf.corner_coords(nodes, M)
+        # only cells overlapping the tree's baked rectangle are refined
+        u_lo, v_lo = uv_of(tr, cc[:, 0])
+        u_hi, v_hi = uv_of(tr, cc[:, 3])
+        inside = (u_hi >= rect[tr, 0]) & (u_lo <= rect[tr, 1]) & (v_hi >= rect[tr, 2]) \
+            & (v_lo <= rect[tr, 3])
+        nodes, tr, cc = nodes[inside], tr[inside], cc[inside]
         mid = (cc[:, 0] + cc[:, 3]) // 2
         if level < params.min_direction_depth:
             split = np.ones(len(nodes), bool)
@@ -211,7 +218,6 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
                 new = samples.extend(_take(ms, keep))
                 index.add(mk[keep], new)
         sn = nodes[split]
-        split_total += len(sn)
         if len(sn) == 0:
             break
         kids = dirf.split(sn)                                            # (n, 4)
@@ -224,12 +230,18 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
     # ---- extra samples for two-class leaves (paper 4.3)
     report(M, 0.0, "extra samples")
     leaves = np.flatnonzero(dirf.child < 0)
+    ltr = dirf.tree_of_nodes()[leaves]
+    lcc = dirf.corner_coords(leaves, M)
+    u_lo, v_lo = uv_of(ltr, lcc[:, 0])
+    u_hi, v_hi = uv_of(ltr, lcc[:, 3])
+    leaves = leaves[(u_hi >= rect[ltr, 0]) & (u_lo <= rect[ltr, 1]) & (v_hi >= rect[ltr, 2])
+                    & (v_lo <= rect[ltr, 3])]
     ex = _extras(dirf, leaves, samples, class_of, tracer, tree_vp, tree_cube, uv_of, M, Gd,
                  params.search_steps, lambda f: report(M, f, "extra samples"))
     report(M + 1, 1.0, "done")
     tree = RITree(params=params, box_lo=box_lo, box_hi=box_hi, diag=diag,
                   class_of=class_of.astype(np.int64), vp_forest=vpf, vp_pos=vp_pos,
-                  vp_face=vface.astype(np.int64), dir_forest=dirf, dir_rect=dom.copy(),
+                  vp_face=vface.astype(np.int64), dir_forest=dirf, dir_rect=rect,
                   samples=samples, **ex,
                   meta={"fingerprint": fingerprint(st.scene.object, st.scene.render.max_events),
                         "region": (region or Region()).describe(),
