@@ -114,12 +114,12 @@ def _proxy_mesh(patch) -> Mesh:
     return Mesh(name=patch.name, vertices=v, triangles=t, material="")
 
 
-def shade_object(st: SceneTracer, obj: ObjectRays, view_dirs) -> tuple[np.ndarray, dict]:
-    """Colours of rays that hit the object: local illumination + (1 - diffuse) * tint * the
-    colour carried by the output ray (and, for dielectrics, the Fresnel-weighted reflection)."""
+def shade_carried(st: SceneTracer, obj: ObjectRays) -> tuple[np.ndarray, dict]:
+    """(1 - diffuse) * tint * the colour the output ray carries from the environment (and, for
+    dielectrics, the Fresnel-weighted reflection) for rays that hit the object; the local
+    illumination is added separately (it is object-only work, this is environment work)."""
     mat = st.scene.object.material
-    col = local_illumination(obj.point, obj.normal, view_dirs, mat, st.env)
-    carried = np.zeros_like(col)
+    carried = np.zeros((len(obj.hit), 3))
     ok = ~obj.null
     counts = {"output_rays": int(ok.sum()), "null_rays": int(obj.null.sum())}
     if np.any(ok):
@@ -129,8 +129,7 @@ def shade_object(st: SceneTracer, obj: ObjectRays, view_dirs) -> tuple[np.ndarra
         refl = st.env.shade_rays(obj.point, obj.refl_dir)
         carried = fr * refl + (1.0 - fr) * carried
         counts["reflected_rays"] = len(obj.point)
-    col += (1.0 - mat.diffuse) * np.asarray(mat.tint) * carried
-    return col, counts
+    return (1.0 - mat.diffuse) * np.asarray(mat.tint) * carried, counts
 
 
 @dataclass
@@ -150,12 +149,15 @@ def render_pixels(st: SceneTracer, origins, dirs, object_fn):
     env_t = st.env.hit_distance(origins, dirs)
     box_t = st.box_entry(origins, dirs)
     cand = np.flatnonzero(box_t < env_t)
+    # object-only (the paper's measure): output rays and the object's local illumination
     t1 = time.perf_counter()
     obj, extra = object_fn(origins[cand], dirs[cand], env_t[cand])
     hit = cand[obj.hit]
-    ocol, counts = shade_object(st, obj.take(obj.hit), dirs[hit])
+    obj = obj.take(obj.hit)
+    local = local_illumination(obj.point, obj.normal, dirs[hit], st.scene.object.material, st.env)
     t_obj = time.perf_counter() - t1
-    col[hit] = ocol
+    carried, counts = shade_carried(st, obj)
+    col[hit] = local + carried
     rest = np.ones(n, bool)
     rest[hit] = False
     col[rest] = st.env.shade_rays(origins[rest], dirs[rest])
@@ -176,8 +178,8 @@ def _merge(stats_list):
 def render_exact(scene: Scene, camera=None, width=None, height=None, workers=None,
                  progress=None, st: SceneTracer | None = None) -> RenderResult:
     """Render ``camera`` (name or None for the first) exactly; sizes default to the scene's."""
-    w = int(width or scene.render.width)
-    h = int(height or scene.render.height)
+    w = int(scene.render.width if width is None else width)
+    h = int(scene.render.height if height is None else height)
     cam = scene.camera(camera)
     wall0 = time.perf_counter()
     st = st or SceneTracer(scene)

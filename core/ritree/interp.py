@@ -118,14 +118,31 @@ def angle_between(a, b):
 
 def pairwise_within(dirs, origins, used, max_angle=None, max_dist=None):
     """Paper 5.3: True where every pair of used interpolants (N, K) has output directions
-    within ``max_angle`` radians and output origins within ``max_dist`` (None: no limit)."""
+    within ``max_angle`` radians and output origins within ``max_dist`` (None: no limit).
+
+    Directions are compared by chord length (a metric equivalent to the angle). Rows are
+    settled by their centroid c first: every point within limit/2 of c passes (triangle
+    inequality); a point farther than the limit from c fails (c is a convex combination, so
+    that point is farther than the limit from some other point); the rest get the exact
+    pairwise test."""
     ok = np.ones(len(used), bool)
-    pair = used[:, :, None] & used[:, None, :]
-    if max_angle is not None:
-        cos = np.einsum("nkc,nlc->nkl", dirs, dirs)
-        ok &= ~np.any(pair & (cos < np.cos(max_angle)), axis=(1, 2))
-    if max_dist is not None:
-        diff = origins[:, :, None, :] - origins[:, None, :, :]
-        d2 = np.einsum("nklc,nklc->nkl", diff, diff)
-        ok &= ~np.any(pair & (d2 > max_dist * max_dist), axis=(1, 2))
+    for pts, lim in ((dirs, None if max_angle is None else 2.0 * np.sin(min(max_angle, np.pi) / 2)),
+                     (origins, max_dist)):
+        if lim is None:
+            continue
+        ok &= _within(pts, used, lim)
+    return ok
+
+
+def _within(pts, used, lim):
+    cnt = np.maximum(used.sum(axis=1), 1)
+    c = np.einsum("nk,nkc->nc", used, pts) / cnt[:, None]
+    r = np.where(used, np.linalg.norm(pts - c[:, None, :], axis=2), 0.0).max(axis=1)
+    ok = r <= 0.5 * lim
+    unsure = np.flatnonzero(~ok & (r <= lim))
+    if len(unsure):
+        p, u = pts[unsure], used[unsure]
+        diff = p[:, :, None, :] - p[:, None, :, :]
+        far = np.einsum("nklc,nklc->nkl", diff, diff) > lim * lim
+        ok[unsure] = ~np.any(far & u[:, :, None] & u[:, None, :], axis=(1, 2))
     return ok
