@@ -144,15 +144,16 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
     vp_pos[rows, a_v] = box_lo[a_v] + (box_hi[a_v] - box_lo[a_v]) * gy / (G - 1)
 
     # ---- which hemicube slots each viewpoint needs
-    slots = _slots_seeing(vp_pos, vface, lo, hi)
     V = len(vp_pos)
     dom = DOMAIN[vface].reshape(V * N_SLOTS, 4)
     rect = dom.copy()
-    if region is not None and region.tree_keys is not None:
+    if region is None or region.tree_keys is None:
+        slots = _slots_seeing(vp_pos, vface, lo, hi)
+    else:
         tk = (uniq[:, None] * N_SLOTS + np.arange(N_SLOTS)).ravel()
         pos = np.clip(np.searchsorted(region.tree_keys, tk), 0, max(len(region.tree_keys) - 1, 0))
         found = (region.tree_keys[pos] == tk) if len(region.tree_keys) else np.zeros(len(tk), bool)
-        slots &= found.reshape(V, N_SLOTS)
+        slots = found.reshape(V, N_SLOTS)          # the cameras' own rays use these slots
         r = region.rects[pos[found]]
         rect[found] = np.stack([np.maximum(r[:, 0], dom[found, 0]), np.minimum(r[:, 1], dom[found, 1]),
                                 np.maximum(r[:, 2], dom[found, 2]), np.minimum(r[:, 3], dom[found, 3])], 1)
