@@ -137,6 +137,7 @@ def _load_rays(path):
     except ValueError as e:
         raise ValueError(f"{path}: not a .npy array file ({e})") from None
     if not isinstance(rays, np.ndarray):
+        rays.close()
         raise ValueError(f"{path}: expected a .npy file holding one array (got an .npz archive)")
     if rays.dtype.kind not in "fiu":
         raise ValueError(f"{path}: expected a numeric N x 6 array (got dtype {rays.dtype})")
@@ -282,8 +283,8 @@ def build_parser():
                        description="Exact render of each sample scene's view: build time, wall "
                        "time, object-only and total time, object rays/s, pairs and Newton "
                        "iterations per object ray. Prints a table; writes JSON.")
-    p.add_argument("--scenes", nargs="+", choices=SAMPLES, default=list(SAMPLES),
-                   help="sample scenes (default: all)")
+    p.add_argument("--scenes", nargs="+", choices=SAMPLES, default=list(SAMPLES), metavar="NAME",
+                   help=f"sample scenes, any of {', '.join(SAMPLES)} (default: all)")
     p.add_argument("--size", type=int, default=300, help="image side in pixels (default: 300)")
     p.add_argument("--camera", default="close", help="camera name (default: close)")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")

@@ -31,8 +31,8 @@ def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
     """Render ``camera`` through ``tree``; with ``reference`` also exactly (same rays, same
     process, interleaved) for the error statistics and images. Returns a RenderResult whose
     ``masks`` hold "traced", "object", "angle_error_deg" and, with reference, "exact"."""
-    w = int(width or scene.render.width)
-    h = int(height or scene.render.height)
+    w = int(scene.render.width if width is None else width)
+    h = int(scene.render.height if height is None else height)
     cam = scene.camera(camera)
     st = st or SceneTracer(scene)
     query = TreeQuery(tree, st, options)

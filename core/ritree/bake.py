@@ -41,13 +41,13 @@ class BakeCancelled(Exception):
 class _Tracer:
     """Traces batches of (viewpoint, cube face, u, v) sample rays with the exact f."""
 
-    def __init__(self, st, vp_pos, workers, report, cancel):
-        self.st, self.vp_pos, self.workers = st, vp_pos, workers
+    def __init__(self, st, baker, workers, report, cancel):
+        self.st, self.baker, self.workers = st, baker, workers
         self.report, self.cancel = report, cancel
         self.rays = 0
 
     def __call__(self, vp, face, u, v) -> Samples:
-        o = self.vp_pos[vp]
+        o = self.baker.vp_pos[vp]
         d = cube_to_dir(face, u, v)
 
         def work(a, b):
@@ -103,154 +103,269 @@ def _progress_reporter(progress, stages):
 
 def bake(st, params: BakeParams | None = None, region: Region | None = None, progress=None,
          cancel=None, workers=None) -> RITree:
-    """Bake the RI-Tree of ``st`` (render.exact.SceneTracer) with ``params`` over ``region``."""
+    """Bake the RI-Tree of ``st`` (render.exact.SceneTracer) with ``params`` over ``region``.
+
+    With a camera region and ``params.viewpoint_refine`` > 0, the viewpoint cells where the
+    cameras' own rays would still be traced (too few usable interpolants, thresholds) are split
+    further, up to that many extra levels (non-uniform viewpoint subdivision)."""
     params = (params or BakeParams()).validate()
     t0 = time.perf_counter()
-    lo, hi, diag = st.tracer.lo, st.tracer.hi, st.tracer.diag
-    pad = params.pad * diag + 1e-12
-    box_lo, box_hi = lo - pad, hi + pad
-    D, M = params.viewpoint_depth, params.direction_depth
-    stages = M + 2
-    report = _progress_reporter(progress, stages)
+    refine = params.viewpoint_refine if region is not None and region.rays is not None else 0
+    stages = (params.direction_depth + 2) * (1 + refine)
+    baker = _Baker(st, params, _progress_reporter(progress, stages), cancel, workers)
+    baker.start(region)
+    passes = 0
+    for _ in range(refine):
+        if not baker.refine(region):
+            break
+        passes += 1
+    tree = baker.tree()
+    tree.meta.update({"fingerprint": fingerprint(st.scene.object, st.scene.render.max_events),
+                      "region": (region or Region()).describe(), "refine_passes": passes,
+                      "bake_seconds": round(time.perf_counter() - t0, 3)})
+    baker.report(stages, 1.0, "done")
+    return tree
 
-    # ---- viewpoint trees: uniform to depth D, corners only for cells in the region
-    vp_dom = np.array([[box_lo[a], box_hi[a], box_lo[b], box_hi[b]]
-                       for f in range(6) for (a, b) in [UV_AXES[f // 2]]])
-    vpf = Forest.empty(vp_dom)
-    nodes = vpf.add_roots(np.arange(6))
-    for _ in range(D):
-        nodes = vpf.split(nodes).ravel()
-    leaves = nodes
-    face = vpf.tree_of_nodes()[leaves]
-    lix, liy = vpf.ix[leaves], vpf.iy[leaves]
-    want = np.ones(len(leaves), bool) if region is None or region.cells is None else \
-        region.cells[face, lix, liy]
-    G = (1 << D) + 1
-    cc = vpf.corner_coords(leaves, D)                                   # (L, 4, 2)
-    vkeys = face[:, None] * G * G + cc[..., 1] * G + cc[..., 0]
-    uniq, inv = np.unique(vkeys[want], return_inverse=True)
-    corner = -np.ones((len(leaves), 4), np.int64)
-    corner[want] = inv.reshape(-1, 4)
-    vpf.corner[leaves] = corner
-    vface = uniq // (G * G)
-    gy, gx = (uniq % (G * G)) // G, uniq % G
-    axes = np.array([UV_AXES[f // 2] for f in range(6)])
-    vp_pos = np.zeros((len(uniq), 3))
-    ax_n = vface // 2
-    rows = np.arange(len(uniq))
-    vp_pos[rows, ax_n] = np.where(vface % 2 == 1, box_hi[ax_n], box_lo[ax_n])
-    a_u, a_v = axes[vface, 0], axes[vface, 1]
-    vp_pos[rows, a_u] = box_lo[a_u] + (box_hi[a_u] - box_lo[a_u]) * gx / (G - 1)
-    vp_pos[rows, a_v] = box_lo[a_v] + (box_hi[a_v] - box_lo[a_v]) * gy / (G - 1)
 
-    # ---- which hemicube slots each viewpoint needs
-    V = len(vp_pos)
-    dom = DOMAIN[vface].reshape(V * N_SLOTS, 4)
-    rect = dom.copy()
-    if region is None or region.tree_keys is None:
-        slots = _slots_seeing(vp_pos, vface, lo, hi)
-    else:
-        tk = (uniq[:, None] * N_SLOTS + np.arange(N_SLOTS)).ravel()
-        pos = np.clip(np.searchsorted(region.tree_keys, tk), 0, max(len(region.tree_keys) - 1, 0))
-        found = (region.tree_keys[pos] == tk) if len(region.tree_keys) else np.zeros(len(tk), bool)
-        slots = found.reshape(V, N_SLOTS)          # the cameras' own rays use these slots
-        r = region.rects[pos[found]]
-        rect[found] = np.stack([np.maximum(r[:, 0], dom[found, 0]), np.minimum(r[:, 1], dom[found, 1]),
-                                np.maximum(r[:, 2], dom[found, 2]), np.minimum(r[:, 3], dom[found, 3])], 1)
-    dirf = Forest.empty(dom)
-    trees = np.flatnonzero(slots.ravel())
-    tracer = _Tracer(st, vp_pos, workers, lambda f: None, cancel)
-    samples = Samples.empty()
-    index = _SampleIndex()
-    Gd = (1 << M) + 1
-    tree_vp = np.arange(V * N_SLOTS) // N_SLOTS
-    tree_cube = CUBE[vface[tree_vp], np.arange(V * N_SLOTS) % N_SLOTS]
+class _Baker:
+    """The bake's state: viewpoint forest, direction forest and samples, grown pass by pass."""
 
-    def uv_of(tr, gxy):
-        d = dom[tr]
+    def __init__(self, st, params, report, cancel, workers):
+        self.st, self.params, self.cancel = st, params, cancel
+        self._report, self.stage0 = report, 0
+        lo, hi, diag = st.tracer.lo, st.tracer.hi, st.tracer.diag
+        pad = params.pad * diag + 1e-12
+        self.box_lo, self.box_hi, self.diag = lo - pad, hi + pad, diag
+        self.D, self.M = params.viewpoint_depth, params.direction_depth
+        self.Dmax = self.D + params.viewpoint_refine
+        self.Gv = (1 << self.Dmax) + 1                  # global viewpoint grid (finest level)
+        self.Gd = (1 << self.M) + 1
+        self.class_of = st.tracer.class_of
+        vp_dom = np.array([[self.box_lo[a], self.box_hi[a], self.box_lo[b], self.box_hi[b]]
+                           for f in range(6) for (a, b) in [UV_AXES[f // 2]]])
+        self.vpf = Forest.empty(vp_dom)
+        self.vp_key = np.zeros(0, np.int64)             # sorted global keys ...
+        self.vp_key_id = np.zeros(0, np.int64)          # ... and their viewpoint ids
+        self.keys_by_id = np.zeros(0, np.int64)
+        self.vp_pos = np.zeros((0, 3))
+        self.vp_face = np.zeros(0, np.int64)
+        self.dirf = Forest.empty(np.zeros((0, 4)))
+        self.rect = np.zeros((0, 4))
+        self.samples = Samples.empty()
+        self.index = _SampleIndex()
+        self.tracer = _Tracer(st, self, workers, lambda f: None, cancel)
+        self.ex = {"ex_node": np.zeros(0, np.int64), "ex_kind": np.zeros(0, np.int8),
+                   "ex_ids": np.zeros((0, 4), np.int64), "ex_pos": np.zeros((0, 4, 2), np.float32),
+                   "ex_corner": np.zeros((0, 4), np.int64)}
+
+    def report(self, stage, frac, label):
+        self._report(self.stage0 + stage, frac, label)
+
+    # ------------------------------------------------------------------ viewpoints
+    def _viewpoints(self, leaves):
+        """Corner viewpoint ids of viewpoint-forest ``leaves`` (created where new); returns the
+        ids of the new viewpoints."""
+        face = self.vpf.tree_of_nodes()[leaves]
+        cc = self.vpf.corner_coords(leaves, self.Dmax)                    # (L, 4, 2)
+        G = self.Gv
+        keys = face[:, None] * G * G + cc[..., 1] * G + cc[..., 0]
+        uk = np.unique(keys)
+        pos = np.searchsorted(self.vp_key, uk)
+        have = (pos < len(self.vp_key)) & (self.vp_key[np.minimum(pos, len(self.vp_key) - 1)] == uk) \
+            if len(self.vp_key) else np.zeros(len(uk), bool)
+        new_keys = uk[~have]
+        start = len(self.vp_key)
+        f = new_keys // (G * G)
+        gy, gx = (new_keys % (G * G)) // G, new_keys % G
+        pos3 = np.zeros((len(new_keys), 3))
+        ax = f // 2
+        rows = np.arange(len(new_keys))
+        axes = np.array([UV_AXES[k // 2] for k in range(6)])
+        lo, hi = self.box_lo, self.box_hi
+        pos3[rows, ax] = np.where(f % 2 == 1, hi[ax], lo[ax])
+        a_u, a_v = axes[f, 0], axes[f, 1]
+        pos3[rows, a_u] = lo[a_u] + (hi[a_u] - lo[a_u]) * gx / (G - 1)
+        pos3[rows, a_v] = lo[a_v] + (hi[a_v] - lo[a_v]) * gy / (G - 1)
+        # ids follow creation order; vp_key keeps the keys sorted for lookups
+        self.vp_pos = np.concatenate([self.vp_pos, pos3])
+        self.vp_face = np.concatenate([self.vp_face, f])
+        ids_all = np.concatenate([np.arange(start), start + rows])
+        keys_all = np.concatenate([self.keys_by_id, new_keys])
+        order = np.argsort(keys_all)
+        self.vp_key, self.vp_key_id = keys_all[order], ids_all[order]
+        self.keys_by_id = keys_all
+        idx = self.vp_key_id[np.searchsorted(self.vp_key, keys)]
+        self.vpf.corner[leaves] = idx
+        return start + rows
+
+    # ------------------------------------------------------------------ direction trees
+    def _add_trees(self, vps, slots_rect):
+        """Direction trees for new viewpoints ``vps``: ``slots_rect(vps) -> (needed (n, 5),
+        rects (n, 5, 4))``. Returns the tree ids created."""
+        n = len(vps)
+        dom = DOMAIN[self.vp_face[vps]]                                   # (n, 5, 4)
+        needed, rects = slots_rect(vps, dom)
+        rects = np.stack([np.maximum(rects[..., 0], dom[..., 0]), np.minimum(rects[..., 1], dom[..., 1]),
+                          np.maximum(rects[..., 2], dom[..., 2]), np.minimum(rects[..., 3], dom[..., 3])], -1)
+        first = len(self.dirf.root)                     # = 5 * vps[0]: vps are the newest
+        self.dirf.domain = np.concatenate([self.dirf.domain, dom.reshape(-1, 4)])
+        self.dirf.root = np.concatenate([self.dirf.root, -np.ones(n * N_SLOTS, np.int64)])
+        self.rect = np.concatenate([self.rect, rects.reshape(-1, 4)])
+        return first + np.flatnonzero(needed.ravel())
+
+    def _tree_vp_cube(self, tr):
+        vp = tr // N_SLOTS
+        return vp, CUBE[self.vp_face[vp], tr % N_SLOTS]
+
+    def uv_of(self, tr, gxy):
+        d = self.dirf.domain[tr]
+        Gd = self.Gd
         return (d[:, 0] + (d[:, 1] - d[:, 0]) * gxy[:, 0] / (Gd - 1),
                 d[:, 2] + (d[:, 3] - d[:, 2]) * gxy[:, 1] / (Gd - 1))
 
-    def ensure(tr, gxy, stage):
+    def _trace(self, tr, u, v, stage, label):
+        vp, cube = self._tree_vp_cube(tr)
+        self.tracer.report = lambda f: self.report(stage, f, label)
+        return self.tracer(vp, cube, u, v)
+
+    def _ensure(self, tr, gxy, stage):
         """Sample ids for grid points (tree, gx, gy), tracing the ones not sampled yet."""
+        Gd = self.Gd
         keys = tr * Gd * Gd + gxy[:, 1] * Gd + gxy[:, 0]
-        ids = index.lookup(keys)
+        ids = self.index.lookup(keys)
         miss = np.flatnonzero(ids < 0)
         if len(miss):
             nk, first, inv2 = np.unique(keys[miss], return_index=True, return_inverse=True)
             t_new, g_new = tr[miss][first], gxy[miss][first]
-            u, v = uv_of(t_new, g_new)
-            tracer.report = lambda f: report(stage, f, "tracing")
-            new = samples.extend(tracer(tree_vp[t_new], tree_cube[t_new], u, v))
-            index.add(nk, new)
+            u, v = self.uv_of(t_new, g_new)
+            new = self.samples.extend(self._trace(t_new, u, v, stage, "tracing"))
+            self.index.add(nk, new)
             ids[miss] = new[inv2.ravel()]
         return ids
 
-    nodes = dirf.add_roots(trees)
-    dirf.corner[nodes] = ensure(np.repeat(trees, 4), np.tile(CORNERS * (Gd - 1), (len(trees), 1)),
-                                0).reshape(-1, 4)
-    tol_ang = np.radians(params.tolerance_deg)
-    tol_d = params.tolerance_dist * diag
-    class_of = st.tracer.class_of
-    for level in range(M):
-        report(level, 0.0, f"direction level {level}")
-        if len(nodes) == 0:
-            break
-        tr = dirf.tree_of_nodes()[nodes]
-        cc = dirf.corner_coords(nodes, M)
-        # only cells overlapping the tree's baked rectangle are refined
-        u_lo, v_lo = uv_of(tr, cc[:, 0])
-        u_hi, v_hi = uv_of(tr, cc[:, 3])
-        inside = (u_hi >= rect[tr, 0]) & (u_lo <= rect[tr, 1]) & (v_hi >= rect[tr, 2]) \
-            & (v_lo <= rect[tr, 3])
-        nodes, tr, cc = nodes[inside], tr[inside], cc[inside]
-        mid = (cc[:, 0] + cc[:, 3]) // 2
-        if level < params.min_direction_depth:
-            split = np.ones(len(nodes), bool)
-        else:
-            u, v = uv_of(tr, mid)
-            tracer.report = lambda f: report(level, f, f"direction level {level}")
-            ms = tracer(tree_vp[tr], tree_cube[tr], u, v)
-            split = _needs_split(samples, dirf.corner[nodes], ms, class_of, tol_ang, tol_d)
-            # the traced midpoint becomes a corner of the children: keep it
-            mk = tr * Gd * Gd + mid[:, 1] * Gd + mid[:, 0]
-            keep = np.flatnonzero(split)
-            if len(keep):
-                new = samples.extend(_take(ms, keep))
-                index.add(mk[keep], new)
-        sn = nodes[split]
-        if len(sn) == 0:
-            break
-        kids = dirf.split(sn)                                            # (n, 4)
-        kc = dirf.corner_coords(kids.ravel(), M)                         # (4n, 4, 2)
-        ktr = np.repeat(tr[split], 4)
-        dirf.corner[kids.ravel()] = ensure(np.repeat(ktr, 4), kc.reshape(-1, 2),
-                                           level).reshape(-1, 4)
-        nodes = kids.ravel()
+    def _overlaps_rect(self, nodes, tr):
+        cc = self.dirf.corner_coords(nodes, self.M)
+        u_lo, v_lo = self.uv_of(tr, cc[:, 0])
+        u_hi, v_hi = self.uv_of(tr, cc[:, 3])
+        r = self.rect[tr]
+        return (u_hi >= r[:, 0]) & (u_lo <= r[:, 1]) & (v_hi >= r[:, 2]) & (v_lo <= r[:, 3])
 
-    # ---- extra samples for two-class leaves (paper 4.3)
-    report(M, 0.0, "extra samples")
-    leaves = np.flatnonzero(dirf.child < 0)
-    ltr = dirf.tree_of_nodes()[leaves]
-    lcc = dirf.corner_coords(leaves, M)
-    u_lo, v_lo = uv_of(ltr, lcc[:, 0])
-    u_hi, v_hi = uv_of(ltr, lcc[:, 3])
-    leaves = leaves[(u_hi >= rect[ltr, 0]) & (u_lo <= rect[ltr, 1]) & (v_hi >= rect[ltr, 2])
-                    & (v_lo <= rect[ltr, 3])]
-    ex = _extras(dirf, leaves, samples, class_of, tracer, tree_vp, tree_cube, uv_of, M, Gd,
-                 params.search_steps, lambda f: report(M, f, "extra samples"))
-    report(M + 1, 1.0, "done")
-    tree = RITree(params=params, box_lo=box_lo, box_hi=box_hi, diag=diag,
-                  class_of=class_of.astype(np.int64), vp_forest=vpf, vp_pos=vp_pos,
-                  vp_face=vface.astype(np.int64), dir_forest=dirf, dir_rect=rect,
-                  samples=samples, **ex,
-                  meta={"fingerprint": fingerprint(st.scene.object, st.scene.render.max_events),
-                        "region": (region or Region()).describe(),
-                        "bake_seconds": round(time.perf_counter() - t0, 3),
-                        "rays_traced": int(tracer.rays), "viewpoints": int(V),
-                        "direction_trees": int(len(trees)), "samples": int(len(samples)),
-                        "extra_cells": int(len(ex["ex_node"]))})
-    return tree
+    def _bake_directions(self, trees):
+        """Adaptive direction trees (paper 3.3) for ``trees``, all trees of a level at once."""
+        p, M, Gd, dirf = self.params, self.M, self.Gd, self.dirf
+        nodes = dirf.add_roots(trees)
+        dirf.corner[nodes] = self._ensure(np.repeat(trees, 4),
+                                          np.tile(CORNERS * (Gd - 1), (len(trees), 1)),
+                                          0).reshape(-1, 4)
+        tol_ang, tol_d = np.radians(p.tolerance_deg), p.tolerance_dist * self.diag
+        for level in range(M):
+            self.report(level, 0.0, f"direction level {level}")
+            if len(nodes) == 0:
+                break
+            tr = dirf.tree_of_nodes()[nodes]
+            inside = self._overlaps_rect(nodes, tr)           # only the baked rectangle refines
+            nodes, tr = nodes[inside], tr[inside]
+            cc = dirf.corner_coords(nodes, M)
+            mid = (cc[:, 0] + cc[:, 3]) // 2
+            if level < p.min_direction_depth:
+                split = np.ones(len(nodes), bool)
+            else:
+                u, v = self.uv_of(tr, mid)
+                ms = self._trace(tr, u, v, level, f"direction level {level}")
+                split = _needs_split(self.samples, dirf.corner[nodes], ms, self.class_of,
+                                     tol_ang, tol_d)
+                # the traced midpoint becomes a corner of the children: keep it
+                keep = np.flatnonzero(split)
+                if len(keep):
+                    new = self.samples.extend(_take(ms, keep))
+                    self.index.add((tr * Gd * Gd + mid[:, 1] * Gd + mid[:, 0])[keep], new)
+            sn = nodes[split]
+            if len(sn) == 0:
+                break
+            kids = dirf.split(sn)                                        # (n, 4)
+            kc = dirf.corner_coords(kids.ravel(), M)                     # (4n, 4, 2)
+            ktr = np.repeat(tr[split], 4)
+            dirf.corner[kids.ravel()] = self._ensure(np.repeat(ktr, 4), kc.reshape(-1, 2),
+                                                     level).reshape(-1, 4)
+            nodes = kids.ravel()
+        # extra samples (paper 4.3) for the new trees' leaves inside their rectangles
+        self.report(M, 0.0, "extra samples")
+        tree_of = dirf.tree_of_nodes()
+        leaves = np.flatnonzero((dirf.child < 0) & np.isin(tree_of, trees))
+        leaves = leaves[self._overlaps_rect(leaves, tree_of[leaves])]
+        ex = _extras(dirf, leaves, self.samples, self.class_of, self._trace_vpc, self.uv_of,
+                     tree_of, M, p.search_steps, lambda f: self.report(M, f, "extra samples"))
+        for k in self.ex:
+            self.ex[k] = np.concatenate([self.ex[k], ex[k]])
+        order = np.argsort(self.ex["ex_node"])
+        self.ex = {k: v[order] for k, v in self.ex.items()}
+        self.stage0 += M + 2
+
+    def _trace_vpc(self, tr, u, v):
+        return self._trace(tr, u, v, self.M, "extra samples")
+
+    # ------------------------------------------------------------------ passes
+    def start(self, region):
+        """Uniform viewpoint trees to depth D; corner viewpoints of the region's cells."""
+        nodes = self.vpf.add_roots(np.arange(6))
+        for _ in range(self.D):
+            nodes = self.vpf.split(nodes).ravel()
+        if region is not None and region.cells is not None:
+            face = self.vpf.tree_of_nodes()[nodes]
+            nodes = nodes[region.cells[face, self.vpf.ix[nodes], self.vpf.iy[nodes]]]
+        vps = self._viewpoints(nodes)
+        self._bake_directions(self._add_trees(vps, self._slot_fn(region, self.D)))
+
+    def refine(self, region) -> bool:
+        """One refinement pass: split the viewpoint cells where the region's rays are traced
+        for lack of interpolants or by the thresholds; False when nothing is left to split."""
+        from .query import WHY_THRESHOLD, WHY_USABLE, TreeQuery, entry_points
+        tree = self.tree()
+        o, d, tmax = region.rays
+        _, ans, why, _ = TreeQuery(tree, self.st)(o, d, tmax)
+        bad = (why == WHY_USABLE) | (why == WHY_THRESHOLD)
+        if not np.any(bad):
+            return False
+        t_in, face, x, y, _ = entry_points(tree, o[bad], d[bad])
+        leaf, _, _ = self.vpf.locate(face, x, y)
+        leaf = np.unique(leaf[leaf >= 0])
+        leaf = leaf[self.vpf.level[leaf] < self.Dmax]
+        if len(leaf) == 0:
+            return False
+        level = int(self.vpf.level[leaf].max()) + 1
+        kids = self.vpf.split(leaf).ravel()
+        vps = self._viewpoints(kids)
+        if len(vps):
+            self._bake_directions(self._add_trees(vps, self._slot_fn(region, level)))
+        return True
+
+    def _slot_fn(self, region, level):
+        """(needed slots, rects) of new viewpoints: the region's, or every slot that can see
+        the object over its whole domain (no region)."""
+        def fn(vps, dom):
+            if region is None or region.tree_keys is None:
+                return (_slots_seeing(self.vp_pos[vps], self.vp_face[vps], self.st.tracer.lo,
+                                      self.st.tracer.hi), dom.copy())
+            keys, rects = region.rects_at(level)
+            tk = (self.keys_by_id[vps][:, None] * N_SLOTS + np.arange(N_SLOTS)).ravel()
+            pos = np.clip(np.searchsorted(keys, tk), 0, max(len(keys) - 1, 0))
+            found = (keys[pos] == tk) if len(keys) else np.zeros(len(tk), bool)
+            out = dom.reshape(-1, 4).copy()
+            out[found] = rects[pos[found]]
+            return found.reshape(-1, N_SLOTS), out.reshape(-1, N_SLOTS, 4)
+        return fn
+
+    def tree(self) -> RITree:
+        return RITree(params=self.params, box_lo=self.box_lo, box_hi=self.box_hi,
+                      diag=self.diag, class_of=self.class_of.astype(np.int64),
+                      vp_forest=self.vpf, vp_pos=self.vp_pos, vp_face=self.vp_face,
+                      dir_forest=self.dirf, dir_rect=self.rect, samples=self.samples,
+                      **self.ex,
+                      meta={"rays_traced": int(self.tracer.rays),
+                            "viewpoints": int(len(self.vp_pos)),
+                            "direction_trees": int(np.sum(self.dirf.root >= 0)),
+                            "samples": int(len(self.samples)),
+                            "extra_cells": int(len(self.ex["ex_node"]))})
 
 
 def _take(s: Samples, idx) -> Samples:
@@ -316,8 +431,7 @@ def _slots_seeing(vp_pos, vface, lo, hi):
     return out
 
 
-def _extras(dirf, leaves, samples, class_of, tracer, tree_vp, tree_cube, uv_of, M, Gd, steps,
-            report):
+def _extras(dirf, leaves, samples, class_of, trace, uv_of, tree_of, M, steps, report):
     """Extra samples of two-class leaves. Corner slots c0..c3 = (0,0), (1,0), (0,1), (1,1);
     edges are searched from a corner of one class towards its neighbour of the other class.
 
@@ -364,7 +478,7 @@ def _extras(dirf, leaves, samples, class_of, tracer, tree_vp, tree_cube, uv_of, 
     k2 = kind == 2
     ex_corner[k2] = np.concatenate([e_from[k2], e_to[k2]], axis=1)
 
-    tr = dirf.tree_of_nodes()[leaves]
+    tr = tree_of[leaves]
     cc = dirf.corner_coords(leaves, M).astype(np.float64)               # (E, 4, 2) grid coords
     rows = np.arange(E)[:, None]
     p0 = cc[rows, e_from]                                               # (E, 2, 2)
@@ -380,7 +494,7 @@ def _extras(dirf, leaves, samples, class_of, tracer, tree_vp, tree_cube, uv_of, 
         f = 0.5 * (lo_f + hi_f)
         g = p0 + (p1 - p0) * f[..., None]                              # (E, 2, 2)
         u, v = uv_of(trr, g.reshape(-1, 2))
-        s = tracer(tree_vp[trr], tree_cube[trr], u, v)
+        s = trace(trr, u, v)
         c = np.where(s.null, -2, np.where(s.patch >= 0, class_of[np.maximum(s.patch, 0)], -1)).reshape(E, 2)
         ids = samples.extend(s).reshape(E, 2)
         same = c == c_from

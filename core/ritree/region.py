@@ -18,22 +18,31 @@ from .query import entry_points
 
 class Region:
     """What to bake. ``cells[f, ix, iy]``: the viewpoint cells of box face f (2^D x 2^D) whose
-    corner viewpoints are sampled. ``tree_keys`` (sorted) and ``rects`` (K, 4): the direction
-    trees needed, keyed ``viewpoint_key * 5 + slot`` with viewpoint_key = f (2^D+1)^2 +
-    gy (2^D+1) + gx, and the (u0, u1, v0, v1) part of each that the cameras' rays use. None
-    means everything (the full tree)."""
+    corner viewpoints are sampled. ``levels[L] = (keys, rects)``: for viewpoints created at
+    viewpoint level L, the direction trees needed, keyed ``viewpoint_key * 5 + slot``
+    (viewpoint_key = f G^2 + gy G + gx on the finest grid, G = 2^(D + refine) + 1), and the
+    (u0, u1, v0, v1) part of each that the cameras' rays use. ``rays`` = (origins, dirs, tmax)
+    of the camera rays that reach the object's box, for refinement. None: everything."""
 
-    def __init__(self, cells=None, tree_keys=None, rects=None):
+    def __init__(self, cells=None, levels=None, rays=None):
         self.cells = cells
-        self.tree_keys = tree_keys
-        self.rects = rects
+        self.levels = levels
+        self.rays = rays
+
+    @property
+    def tree_keys(self):
+        return None if self.levels is None else self.levels[min(self.levels)][0]
+
+    def rects_at(self, level):
+        return self.levels[level]
 
     def describe(self) -> dict:
         if self.cells is None:
             return {"kind": "full"}
         return {"kind": "cameras", "faces": [int(f) for f in np.flatnonzero(self.cells.any((1, 2)))],
                 "cells": int(self.cells.sum()), "cells_total": int(self.cells.size),
-                "direction_trees": int(len(self.tree_keys))}
+                "direction_trees": int(len(self.tree_keys)),
+                "camera_rays": int(len(self.rays[0])) if self.rays is not None else 0}
 
 
 class _Box:
@@ -46,17 +55,19 @@ class _Box:
 def region_for_cameras(st, params, cameras, width, height, margin: int = 1) -> Region:
     """The Region that the rays of ``cameras`` (a list of scene Cameras, e.g. one per frame of
     an animation) at ``width`` x ``height`` pixels need: the viewpoint cells they enter the box
-    through (with ``margin`` cells around), and for the corner viewpoints of those cells the
-    hemicube slots and the direction rectangles their directions fall in (widened by
-    ``margin`` cells of the finest direction grid)."""
+    through (with ``margin`` cells around), and, for every viewpoint level up to the refinement
+    limit, the hemicube slots and direction rectangles (widened by ``margin`` cells of the
+    finest direction grid) used around each viewpoint."""
     diag = st.tracer.diag
     pad = params.pad * diag + 1e-12
     box = _Box(st.tracer.lo - pad, st.tracer.hi + pad)
     D, M = params.viewpoint_depth, params.direction_depth
+    Dmax = D + params.viewpoint_refine
+    G = (1 << Dmax) + 1
     n = 1 << D
-    G = n + 1
     cells = np.zeros((6, n, n), bool)
-    keys, us, vs = [], [], []
+    rec = []                                    # (face, fx, fy, slot, u, v) per ray
+    rays = []
     for cam in cameras:
         o, d = camera_rays(cam, width, height)
         t_in, face, x, y, inside = entry_points(box, o, d)
@@ -65,40 +76,47 @@ def region_for_cameras(st, params, cameras, width, height, margin: int = 1) -> R
                              "RI-Tree answers rays from outside it only; bake the full tree")
         cf, u, v = dir_to_cube(d)
         sl = SLOT[face, cf]
-        ok = np.isfinite(t_in) & (sl >= 0)
+        env_t = st.env.hit_distance(o, d)
+        ok = np.isfinite(t_in) & (sl >= 0) & (t_in < env_t)
+        rays.append((o[ok], d[ok], env_t[ok]))
         face, x, y, u, v, sl = face[ok], x[ok], y[ok], u[ok], v[ok], sl[ok]
         axis = face // 2
         ua = np.array([p[0] for p in UV_AXES])[axis]
         va = np.array([p[1] for p in UV_AXES])[axis]
-        fx = (x - box.box_lo[ua]) / (box.box_hi[ua] - box.box_lo[ua])
-        fy = (y - box.box_lo[va]) / (box.box_hi[va] - box.box_lo[va])
-        ix = np.clip((fx * n).astype(np.int64), 0, n - 1)
-        iy = np.clip((fy * n).astype(np.int64), 0, n - 1)
+        fx = np.clip((x - box.box_lo[ua]) / (box.box_hi[ua] - box.box_lo[ua]), 0.0, 1.0)
+        fy = np.clip((y - box.box_lo[va]) / (box.box_hi[va] - box.box_lo[va]), 0.0, 1.0)
+        rec.append((face, fx, fy, sl, u, v))
+    face, fx, fy, sl, u, v = (np.concatenate([r[k] for r in rec]) for k in range(6))
+    widen = margin * 2.0 / (1 << M)           # finest direction cells are at most 2 / 2^M wide
+    levels = {}
+    for level in range(D, Dmax + 1):
+        m = 1 << level
+        step = 1 << (Dmax - level)
+        ix = np.minimum((fx * m).astype(np.int64), m - 1)
+        iy = np.minimum((fy * m).astype(np.int64), m - 1)
+        keys = []
         for dx in range(-margin, margin + 1):
             for dy in range(-margin, margin + 1):
-                jx = np.clip(ix + dx, 0, n - 1)
-                jy = np.clip(iy + dy, 0, n - 1)
-                cells[face, jx, jy] = True
+                jx = np.clip(ix + dx, 0, m - 1)
+                jy = np.clip(iy + dy, 0, m - 1)
+                if level == D:
+                    cells[face, jx, jy] = True
                 for cx in (0, 1):
                     for cy in (0, 1):
-                        vk = face * G * G + (jy + cy) * G + (jx + cx)
+                        vk = face * G * G + (jy + cy) * step * G + (jx + cx) * step
                         keys.append(vk * N_SLOTS + sl)
-                        us.append(u)
-                        vs.append(v)
-    keys = np.concatenate(keys) if keys else np.zeros(0, np.int64)
-    uk, inv = np.unique(keys, return_inverse=True)
-    inv = inv.ravel()
-    rects = np.empty((len(uk), 4))
-    rects[:, 0] = np.inf
-    rects[:, 2] = np.inf
-    rects[:, 1] = -np.inf
-    rects[:, 3] = -np.inf
-    u = np.concatenate(us) if us else np.zeros(0)
-    v = np.concatenate(vs) if vs else np.zeros(0)
-    np.minimum.at(rects[:, 0], inv, u)
-    np.maximum.at(rects[:, 1], inv, u)
-    np.minimum.at(rects[:, 2], inv, v)
-    np.maximum.at(rects[:, 3], inv, v)
-    widen = margin * 2.0 / (1 << M)           # finest direction cells are at most 2 / 2^M wide
-    rects += np.array([-widen, widen, -widen, widen])
-    return Region(cells=cells, tree_keys=uk, rects=rects)
+        keys = np.concatenate(keys)
+        reps = len(keys) // max(len(u), 1)
+        uk, inv = np.unique(keys, return_inverse=True)
+        inv = inv.ravel()
+        rects = np.empty((len(uk), 4))
+        rects[:, [0, 2]] = np.inf
+        rects[:, [1, 3]] = -np.inf
+        uu, vv = np.tile(u, reps), np.tile(v, reps)
+        np.minimum.at(rects[:, 0], inv, uu)
+        np.maximum.at(rects[:, 1], inv, uu)
+        np.minimum.at(rects[:, 2], inv, vv)
+        np.maximum.at(rects[:, 3], inv, vv)
+        levels[level] = (uk, rects + np.array([-widen, widen, -widen, widen]))
+    o, d, t = (np.concatenate([r[k] for r in rays]) for k in range(3))
+    return Region(cells=cells, levels=levels, rays=(o, d, t))

@@ -26,6 +26,7 @@ class BakeParams:
     """Bake settings. Angles in degrees, distances relative to the object's box diagonal."""
 
     viewpoint_depth: int = 5          # uniform viewpoint-tree depth (paper: 5)
+    viewpoint_refine: int = 2         # extra viewpoint levels where camera rays lack interpolants
     direction_depth: int = 6          # maximum direction-tree depth (paper: 6)
     min_direction_depth: int = 1      # direction trees are split at least this deep
     tolerance_deg: float = 0.5        # split while the midpoint's interpolated output ray ...
@@ -37,6 +38,8 @@ class BakeParams:
         checks = [
             (1 <= self.viewpoint_depth <= 9, "viewpoint_depth must be in 1..9"),
             (1 <= self.direction_depth <= 10, "direction_depth must be in 1..10"),
+            (0 <= self.viewpoint_refine <= 4 and self.viewpoint_depth + self.viewpoint_refine <= 10,
+             "viewpoint_refine must be in 0..4 with viewpoint_depth + viewpoint_refine <= 10"),
             (0 <= self.min_direction_depth <= self.direction_depth,
              "min_direction_depth must be in 0..direction_depth"),
             (np.isfinite(self.tolerance_deg) and self.tolerance_deg > 0, "tolerance_deg must be > 0"),

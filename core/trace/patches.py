@@ -338,9 +338,13 @@ class PatchTracer:
                                 + 2 * (a * b)[:, None] * Pst[g] + b[:, None] ** 2 * Ptt[g]))
         chord = 2.0 * np.abs(cos[g]) / np.maximum(curv, 1e-300)
         chord *= np.where(tt[g] > tmin[rr[g]], -1.0, 1.0)
-        gi = good[g]
-        s2 = s[gi] + chord * a
-        t2 = t[gi] + chord * b
+        # a seed far outside the net means the twin is elsewhere (another net finds it)
+        s2 = s[good[g]] + chord * a
+        t2 = t[good[g]] + chord * b
+        near = (s2 >= -1.0) & (s2 <= 2.0) & (t2 >= -1.0) & (t2 <= 2.0)
+        gi, s2, t2 = good[g][near], s2[near], t2[near]
+        if len(gi) == 0:
+            return
         ro, rd = o[r[gi]], d[r[gi]]
         n1, n2 = _ray_planes(rd)
         c1 = np.einsum("ij,ij->i", n1, ro)

@@ -1,0 +1,262 @@
+"""The `riray` command line (docs/cli.md): every sub-command answers --help, render writes the
+documented files, trace-rays writes the documented arrays, bad input gives exit 2 and one line."""
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from riray.cli import build_parser, main
+from riray.render.image import read_png
+from riray.scene.io import load_scene, save_scene
+from riray.scene.samples import GLASS_SPHERE_RADIUS, build
+
+SUMMARY_KEYS = {"scene", "camera", "width", "height", "mode", "rays_traced", "object_pixels",
+                "object_only_cpu_s", "total_cpu_s", "wall_s", "build_s", "object_rays_per_cpu_s"}
+COUNT_KEYS = {"camera_rays", "object_candidates", "object_hits", "events", "object_time_s",
+              "total_time_s", "output_rays", "null_rays", "pairs", "newton_iters",
+              "fallback_pairs"}
+# name -> (dtype kind, trailing shape) of the trace-rays output arrays (docs/cli.md)
+TRACE_ARRAYS = {"hit": ("b", ()), "null": ("b", ()), "out_origin": ("f", (3,)),
+                "out_dir": ("f", (3,)), "t_first": ("f", ()), "point": ("f", (3,)),
+                "normal": ("f", (3,)), "patch": ("i", ()), "cls": ("i", ()), "events": ("i", ()),
+                "refl_dir": ("f", (3,)), "fresnel": ("f", ()), "tree": ("u", ())}
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    """A small glass sphere scene (24 x 24) saved with save_scene, and a max_events = 1 copy
+    (every ray that enters the sphere is still hitting it after one event: null)."""
+    d = tmp_path_factory.mktemp("cli")
+    scene = build("glass_sphere")
+    scene.render.width = scene.render.height = 24
+    save_scene(scene, d / "sphere.json")
+    scene.render.max_events = 1
+    save_scene(scene, d / "sphere_null.json")
+    return d
+
+
+def _sphere_centre():
+    obj = build("glass_sphere").object.patches[0].surface.points.reshape(-1, 3)
+    return (obj.min(axis=0) + obj.max(axis=0)) / 2
+
+
+def _one_line_error(err: str, cmd: str) -> None:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith(f"riray {cmd}: error: "), err
+    assert "Traceback" not in err
+
+
+def _subcommands():
+    ap = build_parser()
+    sub = next(a for a in ap._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices
+
+
+def test_help_of_every_subcommand_names_its_options(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--help"])
+    assert e.value.code == 0
+    top = capsys.readouterr().out
+    subs = _subcommands()
+    assert {"render", "trace-rays", "validate", "demo", "bench-exact"} <= set(subs)
+    for name, parser in subs.items():
+        assert name in top
+        with pytest.raises(SystemExit) as e:
+            main([name, "--help"])
+        assert e.value.code == 0, name
+        out = capsys.readouterr().out
+        for action in parser._actions:
+            for opt in action.option_strings:
+                if opt.startswith("--"):
+                    assert opt in out, (name, opt)
+
+
+def test_console_script_entry_point(files):
+    exe = Path(sys.executable).parent / "riray"
+    assert exe.exists(), "the console script is not installed next to the interpreter"
+    r = subprocess.run([str(exe), "validate", str(files / "sphere.json")], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert "ok" in r.stdout
+    r = subprocess.run([str(exe), "validate", str(files / "missing.json")], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 2
+    _one_line_error(r.stderr, "validate")
+
+
+def test_render_writes_png_npy_json(files, tmp_path, capsys):
+    stem = tmp_path / "out" / "img"
+    rc = main(["render", str(files / "sphere.json"), "--out", str(stem) + ".png", "--camera",
+               "close", "--width", "32", "--height", "24", "--workers", "1", "--quiet"])
+    assert rc == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert len(printed["written"]) == 3
+    img = np.load(stem.with_suffix(".npy"))
+    assert img.shape == (24, 32, 3) and np.isfinite(img).all()
+    assert read_png(stem.with_suffix(".png")).shape[:2] == (24, 32)
+    stats = json.loads(stem.with_suffix(".json").read_text())
+    assert SUMMARY_KEYS <= set(stats["summary"])
+    assert COUNT_KEYS <= set(stats["counts"])
+    s = stats["summary"]
+    assert (s["width"], s["height"], s["camera"], s["mode"]) == (32, 24, "close", "exact")
+    assert 0 < s["object_pixels"] <= s["rays_traced"] <= 32 * 24
+
+
+def test_render_sample_name_and_defaults(tmp_path, capsys):
+    assert main(["render", "vase_mirror", "--out", str(tmp_path / "v"), "--width", "16",
+                 "--height", "16", "--workers", "2", "--quiet"]) == 0
+    assert np.isfinite(np.load(tmp_path / "v.npy")).all()
+    capsys.readouterr()
+
+
+def _crafted_rays():
+    c = _sphere_centre()
+    r = GLASS_SPHERE_RADIUS
+    return np.array([
+        [*(c + (0, -1.0, 0)), 0, 3.0, 0],                 # through the centre, non-unit dir
+        [*(c + (0.3 * r, -1.0, 0.2 * r)), 0, 1, 0],       # off-centre hit
+        [*(c + (0, -1.0, 0)), 0, -1, 0],                  # pointing away: miss
+        [*(c + (2 * r, -1.0, 0)), 0, 0.5, 0],             # passes beside: miss
+        [*(c + (0, 0, -0.5)), 0.01, 0.0, 1.0],            # from below, nearly along z
+    ])
+
+
+def test_trace_rays_arrays(files, tmp_path, capsys):
+    rays = _crafted_rays()
+    np.save(tmp_path / "rays.npy", rays)
+    assert main(["trace-rays", str(files / "sphere.json"), "--rays", str(tmp_path / "rays.npy"),
+                 "--out", str(tmp_path / "out"), "--workers", "1", "--quiet"]) == 0
+    assert "5 rays" in capsys.readouterr().out
+    z = np.load(tmp_path / "out.npz")           # the suffix is added
+    assert set(z.files) == set(TRACE_ARRAYS)
+    for name, (kind, tail) in TRACE_ARRAYS.items():
+        assert z[name].dtype.kind == kind, name
+        assert z[name].shape == (5, *tail), name
+    u = rays[:, 3:] / np.linalg.norm(rays[:, 3:], axis=1)[:, None]
+    assert z["hit"].tolist() == [True, True, False, False, True]
+    assert not z["null"].any()
+    assert np.allclose(np.linalg.norm(z["out_dir"], axis=1), 1.0, atol=1e-12)
+    miss = ~z["hit"]
+    assert np.array_equal(z["out_origin"][miss], rays[miss, :3])
+    assert np.allclose(z["out_dir"][miss], u[miss], atol=1e-15)
+    assert np.isinf(z["t_first"][miss]).all() and (z["patch"][miss] == -1).all()
+    assert (z["events"][miss] == 0).all() and (z["tree"][miss] == 0).all()
+    # through the centre: straight through, leaving on the far side
+    assert np.allclose(z["out_dir"][0], (0, 1, 0), atol=1e-9)
+    assert np.isclose(z["t_first"][0], 1.0 - GLASS_SPHERE_RADIUS, atol=1e-9)
+    assert np.allclose(z["out_origin"][0], _sphere_centre() + (0, GLASS_SPHERE_RADIUS, 0),
+                       atol=1e-9)
+    hit = z["hit"]
+    assert (z["events"][hit] == 2).all()
+    # normals are unit and face the incoming ray
+    assert np.allclose(np.linalg.norm(z["normal"][hit], axis=1), 1.0)
+    assert (np.einsum("ij,ij->i", z["normal"][hit], u[hit]) < 0).all()
+    for name in z.files:
+        if z[name].dtype.kind == "f":
+            assert not np.isnan(z[name]).any(), name
+
+
+def test_trace_rays_null_rays_have_zero_direction(files, tmp_path, capsys):
+    np.save(tmp_path / "rays.npy", _crafted_rays())
+    assert main(["trace-rays", str(files / "sphere_null.json"), "--rays",
+                 str(tmp_path / "rays.npy"), "--out", str(tmp_path / "o.npz"), "--quiet"]) == 0
+    capsys.readouterr()
+    z = np.load(tmp_path / "o.npz")
+    assert np.array_equal(z["null"], z["hit"]) and z["null"].sum() == 3
+    assert (z["out_dir"][z["null"]] == 0).all()
+    ln = np.linalg.norm(z["out_dir"], axis=1)
+    assert np.allclose(ln[~z["null"]], 1.0)
+
+
+def _bad_rays(tmp_path):
+    ok = _crafted_rays()
+    nan = ok.copy()
+    nan[2, 1] = np.nan
+    inf = ok.copy()
+    inf[0, 4] = np.inf
+    zero = ok.copy()
+    zero[3, 3:] = 0.0
+    out = {"shape": ok[:, :5], "1d": ok.ravel(), "nan": nan, "inf": inf, "zero_dir": zero,
+           "strings": np.array([["a"] * 6])}
+    paths = {}
+    for k, v in out.items():
+        paths[k] = tmp_path / f"{k}.npy"
+        np.save(paths[k], v)
+    paths["npz"] = tmp_path / "x.npz"
+    np.savez(paths["npz"], rays=ok)
+    paths["text"] = tmp_path / "text.npy"
+    paths["text"].write_text("1 2 3 4 5 6\n")
+    paths["missing"] = tmp_path / "missing.npy"
+    return paths
+
+
+def test_trace_rays_bad_input_exit_2_one_line(files, tmp_path, capsys):
+    for name, path in _bad_rays(tmp_path).items():
+        rc = main(["trace-rays", str(files / "sphere.json"), "--rays", str(path), "--out",
+                   str(tmp_path / "o.npz"), "--quiet"])
+        cap = capsys.readouterr()
+        assert rc == 2, name
+        _one_line_error(cap.err, "trace-rays")
+        assert not (tmp_path / "o.npz").exists(), name
+    # the messages say what is wrong and where
+    paths = _bad_rays(tmp_path)
+    main(["trace-rays", str(files / "sphere.json"), "--rays", str(paths["nan"]), "--out",
+          str(tmp_path / "o.npz")])
+    assert "row 2 column 1" in capsys.readouterr().err
+    main(["trace-rays", str(files / "sphere.json"), "--rays", str(paths["zero_dir"]), "--out",
+          str(tmp_path / "o.npz")])
+    assert "row 3 is zero" in capsys.readouterr().err
+
+
+def test_validate_good_and_bad(files, tmp_path, capsys):
+    assert main(["validate", str(files / "sphere.json")]) == 0
+    assert "ok" in capsys.readouterr().out
+    d = json.loads((files / "sphere.json").read_text())
+    d["object"]["patches"][0]["degree_u"] = 0
+    (tmp_path / "bad.json").write_text(json.dumps(d))
+    assert main(["validate", str(tmp_path / "bad.json")]) == 2
+    err = capsys.readouterr().err
+    _one_line_error(err, "validate")
+    assert "object.patches[0].degree_u" in err
+    (tmp_path / "empty.json").write_text("")
+    assert main(["validate", str(tmp_path / "empty.json")]) == 2
+    _one_line_error(capsys.readouterr().err, "validate")
+
+
+def test_render_bad_arguments(files, tmp_path, capsys):
+    for extra, what in ((["--camera", "nope"], "no camera named 'nope'"),
+                        (["--width", "0"], "image size")):
+        rc = main(["render", str(files / "sphere.json"), "--out", str(tmp_path / "x"),
+                   "--quiet", *extra])
+        err = capsys.readouterr().err
+        assert rc == 2, extra
+        _one_line_error(err, "render")
+        assert what in err
+    assert main(["render", "no_such_scene.json", "--out", str(tmp_path / "x")]) == 2
+    _one_line_error(capsys.readouterr().err, "render")
+
+
+def test_bench_exact_plumbing(tmp_path, capsys):
+    out = tmp_path / "bench.json"
+    assert main(["bench-exact", "--scenes", "glass_sphere", "--size", "12", "--workers", "1",
+                 "--out", str(out), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "| glass_sphere |" in printed and "object rays/s" in printed
+    res = json.loads(out.read_text())
+    row, = res["rows"]
+    assert row["scene"] == "glass_sphere" and row["size"] == 12
+    for key in ("build_s", "wall_s", "object_cpu_s", "total_cpu_s", "object_rays",
+                "object_rays_per_s", "pairs_per_ray", "newton_iters_per_ray"):
+        assert np.isfinite(row[key]) and row[key] >= 0, key
+    assert res["machine"]["cpu_count"] >= 1 and res["settings"]["workers"] == 1
+
+
+def test_saved_scene_round_trips(files):
+    # the fixture's file is a real scene file (guards the tests above against a silent fallback)
+    assert load_scene(files / "sphere.json").render.width == 24
