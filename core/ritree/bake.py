@@ -90,11 +90,14 @@ class _SampleIndex:
 def _progress_reporter(progress, stages):
     """Map (stage, fraction within stage) to an overall fraction with an ETA message."""
     t0 = time.perf_counter()
+    last = [0.0]
 
     def report(stage, frac, label):
         if progress is None:
             return
-        total = (stage + min(max(frac, 0.0), 1.0)) / stages
+        # several traces share a stage: never let the bar go back
+        total = min(max((stage + min(max(frac, 0.0), 1.0)) / stages, last[0]), 1.0)
+        last[0] = total
         el = time.perf_counter() - t0
         eta = el / total - el if total > 0 else float("nan")
         progress(total, f"{label}: {100 * total:.0f}% (eta {eta:.0f} s)")

@@ -46,7 +46,7 @@ MAX_STEP = 0.5
 SEED_MARGIN = 0.25
 # De Casteljau retry depth for pairs whose Newton run found no usable root (each level halves
 # the net in both directions; the ray is kept only where it meets a child's box).
-FALLBACK_LEVELS = 2
+FALLBACK_LEVELS = 1
 # A root whose ray makes an angle below asin(GRAZING_COS) with the tangent plane may have a
 # nearer twin root in the same sub-patch: two roots in one sub-patch need the normal to turn by
 # at least twice that angle, which the sub-patch normal cone (bezier.CONE_HALF_ANGLE_DEG) bounds.
