@@ -3,8 +3,12 @@ PYTHON ?= python3.11
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+# The Blender add-on tests (tests/addon) and `make extension` need the bpy wheel (Python 3.11
+# only, ~374 MB download; it pins numpy<2, which core supports).
+BPY_VERSION ?= 5.0.1
+BPY_STAMP   := $(VENV)/.bpy-$(BPY_VERSION)
 
-.PHONY: demo test venv clean
+.PHONY: demo test venv venv-bpy extension clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -16,11 +20,34 @@ $(STAMP): $(BIN)/python pyproject.toml
 
 venv: $(STAMP)
 
+$(BPY_STAMP): $(STAMP)
+	$(BIN)/python -m pip install --quiet bpy==$(BPY_VERSION)
+	touch $(BPY_STAMP)
+
+venv-bpy: $(BPY_STAMP)
+
+# dist/riray-<version>.zip: riray_addon/ + core/ staged under build/extension, built and
+# validated by Blender's own extension tool (docs/blender.md).
+extension: $(BPY_STAMP)
+	$(BIN)/python riray_addon/build_extension.py --out dist --validate
+
 demo: $(STAMP)
 	$(BIN)/riray demo --out demo_out
 
-test: $(STAMP)
+# Core must run on numpy 1.26 (what Blender bundles; the bpy wheel pins it in .venv) and on
+# current numpy: the core tests run again in a second, bpy-free environment with numpy 2.
+NP2      := .venv-numpy2
+NP2STAMP := $(NP2)/.installed
+
+$(NP2STAMP): pyproject.toml
+	$(PYTHON) -m venv $(NP2)
+	$(NP2)/bin/python -m pip install --quiet --upgrade pip
+	$(NP2)/bin/python -m pip install --quiet -e '.[test]' 'numpy>=2'
+	touch $(NP2STAMP)
+
+test: $(STAMP) $(BPY_STAMP) $(NP2STAMP)
 	$(BIN)/python -m pytest
+	$(NP2)/bin/python -m pytest tests/core -p no:cacheprovider
 
 clean:
-	rm -rf $(VENV) demo_out build *.egg-info
+	rm -rf $(VENV) $(NP2) demo_out build dist *.egg-info

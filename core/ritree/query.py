@@ -92,9 +92,6 @@ class TreeQuery:
         self.tree, self.st = tree, st
         self.opt = (options or QueryOptions()).validate()
         self.material = st.scene.object.material
-        s = tree.samples
-        self.vals = np.concatenate([s.out_o, s.out_d, s.point, s.normal], axis=1)   # (S, 12) f32
-        self.cls = tree.sample_class(np.arange(len(s.patch)))
 
     def __call__(self, o, d, tmax=None):
         """(ObjectRays, answers (N,), why (N,), stats) for rays o, d (unit)."""
@@ -170,7 +167,7 @@ class TreeQuery:
         tree, opt = self.tree, self.opt
         m = len(q)
         flat = ids.reshape(m, 16)
-        cls = self.cls[flat]
+        cls = tree.sample_class(flat)
         srt = np.sort(cls, axis=1)
         n_cls = 1 + np.sum(srt[:, 1:] != srt[:, :-1], axis=1)
         many = n_cls > 2
@@ -222,7 +219,7 @@ class TreeQuery:
         used = ((dq_ok & (qst != FAIL)[:, None])[:, :, None] & member).reshape(m, 24)
         sid = sid.reshape(m, 24)
         weights = weights.reshape(m, 24)
-        vals = self.vals[sid].astype(np.float64)                        # (m, 24, 12)
+        vals = tree.samples.gather(sid)                                 # (m, 24, 12)
         thr = np.ones(m, bool)
         if opt.angle_deg is not None or opt.distance is not None:
             thr = pairwise_within(vals[:, :, 3:6], vals[:, :, 0:3], used,
@@ -260,7 +257,7 @@ class TreeQuery:
         exi = tree.ex_ids[pos]
         exp = tree.ex_pos[pos].astype(np.float64)
         us = usable[rows, k]
-        ex_use = (self.cls[exi] == pc[rows, None]) & ~tree.samples.null[exi]
+        ex_use = (tree.sample_class(exi) == pc[rows, None]) & ~tree.samples.null[exi]
         n = len(rows)
         # candidate triangles: vertex (slot, position); slots 0..3 corners, 4, 5 extras
         tri_slot = np.zeros((n, 2, 3), np.int64)
@@ -322,7 +319,7 @@ class TreeQuery:
         m = len(q)
         flat = ids.reshape(m, 16)
         th = tree.samples.tree[flat]
-        cls = self.cls[flat]
+        cls = tree.sample_class(flat)
         same = np.all(th == th[:, :1], axis=1) & np.all(cls == cls[:, :1], axis=1) \
             & ~np.any(tree.samples.null[flat], axis=1)
         miss = same & (cls[:, 0] == -1)
@@ -338,7 +335,7 @@ class TreeQuery:
             wq = np.stack([(1 - alpha[g]) * (1 - beta[g]), alpha[g] * (1 - beta[g]),
                            (1 - alpha[g]) * beta[g], alpha[g] * beta[g]], 1)
             weights = (wq[:, :, None] * wdq).reshape(len(g), 16)
-            out = np.einsum("nk,nkc->nc", weights, self.vals[flat[g]].astype(np.float64))
+            out = np.einsum("nk,nkc->nc", weights, tree.samples.gather(flat[g]))
             od, nm = out[:, 3:6], out[:, 9:12]
             ans[q[g]] = FULL
             self._fill(res, ans, q[g], o, d, tmax, out[:, 0:3],

@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from .cache import fingerprint, load_tree, save_tree
+from .codec import decode_points, decode_unit_vectors, encode_points, encode_unit_vectors
 from .quadtree import Forest
 
 SAMPLE_FIELDS = ("out_o", "out_d", "point", "normal", "patch", "null", "tree")
@@ -83,12 +84,55 @@ class Samples:
     def __len__(self) -> int:
         return len(self.patch)
 
+    def gather(self, ids) -> np.ndarray:
+        """(..., 12) float64 values (out_o, out_d, point, normal) of sample ids."""
+        return np.concatenate([self.out_o[ids], self.out_d[ids], self.point[ids],
+                               self.normal[ids]], axis=-1).astype(np.float64)
+
+    def packed(self, lo, hi) -> "PackedSamples":
+        """The compact form stored in cache files: points as 16-bit codes in the box [lo, hi],
+        unit vectors as 2 x int16 octahedral codes (codec's worst-case errors: box / 131070
+        per axis, 6.5e-5 rad)."""
+        return PackedSamples(out_o_q=encode_points(self.out_o, lo, hi)[0],
+                             out_d_q=encode_unit_vectors(self.out_d),
+                             point_q=encode_points(self.point, lo, hi)[0],
+                             normal_q=encode_unit_vectors(self.normal),
+                             patch=self.patch.astype(np.int16 if self.patch.max(initial=0) < 32767
+                                                     else np.int32),
+                             null=self.null, tree=self.tree, lo=np.asarray(lo), hi=np.asarray(hi))
+
     def extend(self, other: "Samples") -> np.ndarray:
         """Append ``other``; returns the new ids."""
         start = len(self)
         for k in SAMPLE_FIELDS:
             setattr(self, k, np.concatenate([getattr(self, k), getattr(other, k)]))
         return np.arange(start, len(self))
+
+
+@dataclass
+class PackedSamples:
+    """Samples as stored in a cache file (possibly memory-mapped); decoded on gather."""
+
+    out_o_q: np.ndarray     # (S, 3) uint16 point codes in the box [lo, hi]
+    out_d_q: np.ndarray     # (S, 2) int16 octahedral codes (zero vector reserved)
+    point_q: np.ndarray
+    normal_q: np.ndarray
+    patch: np.ndarray       # (S,) int16/int32
+    null: np.ndarray        # (S,) bool
+    tree: np.ndarray        # (S,) uint32 ray-tree hash
+    lo: np.ndarray
+    hi: np.ndarray
+
+    FIELDS = ("out_o_q", "out_d_q", "point_q", "normal_q", "patch", "null", "tree")
+
+    def __len__(self) -> int:
+        return len(self.patch)
+
+    def gather(self, ids) -> np.ndarray:
+        return np.concatenate([decode_points(self.out_o_q[ids], self.lo, self.hi),
+                               decode_unit_vectors(self.out_d_q[ids]),
+                               decode_points(self.point_q[ids], self.lo, self.hi),
+                               decode_unit_vectors(self.normal_q[ids])], axis=-1)
 
 
 @dataclass
@@ -103,7 +147,7 @@ class RITree:
     vp_face: np.ndarray               # (V,) box face of each viewpoint
     dir_forest: Forest                # 5 V trees, corners = sample ids
     dir_rect: np.ndarray              # (5 V, 4) baked part of each direction tree's domain
-    samples: Samples
+    samples: Samples | PackedSamples
     ex_node: np.ndarray               # (E,) sorted leaf nodes of dir_forest with extra samples
     ex_kind: np.ndarray               # (E,) 1 = one-interpolant, 2 = two-interpolant cell
     ex_ids: np.ndarray                # (E, 4) sample ids v1..v4
@@ -123,7 +167,12 @@ class RITree:
                "ex_pos": self.ex_pos, "ex_corner": self.ex_corner}
         out.update(self.vp_forest.arrays("vp"))
         out.update(self.dir_forest.arrays("dir"))
-        out.update({f"s.{k}": getattr(self.samples, k) for k in SAMPLE_FIELDS})
+        for k in ("dir.child", "dir.corner", "vp.child", "vp.corner", "ex_ids"):
+            if out[k].size == 0 or (out[k].max() < 2**31 - 1):
+                out[k] = out[k].astype(np.int32)
+        packed = self.samples if isinstance(self.samples, PackedSamples) else \
+            self.samples.packed(self.box_lo, self.box_hi)
+        out.update({f"s.{k}": getattr(packed, k) for k in PackedSamples.FIELDS})
         return out
 
     def header(self) -> dict:
@@ -137,7 +186,8 @@ class RITree:
                    vp_forest=Forest.from_arrays(a, "vp"), vp_pos=a["vp_pos"],
                    vp_face=a["vp_face"], dir_forest=Forest.from_arrays(a, "dir"),
                    dir_rect=a["dir_rect"],
-                   samples=Samples(**{k: a[f"s.{k}"] for k in SAMPLE_FIELDS}),
+                   samples=PackedSamples(**{k: a[f"s.{k}"] for k in PackedSamples.FIELDS},
+                                         lo=np.asarray(a["box_lo"]), hi=np.asarray(a["box_hi"])),
                    ex_node=a["ex_node"], ex_kind=a["ex_kind"], ex_ids=a["ex_ids"],
                    ex_pos=a["ex_pos"], ex_corner=a["ex_corner"],
                    meta={k: v for k, v in header.items() if k not in ("params", "diag")})
