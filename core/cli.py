@@ -55,9 +55,15 @@ def _tree_opts(p):
 def _bake_opts(p):
     from .ritree.tree import BakeParams
     d = BakeParams()
-    p.add_argument("--viewpoint-depth", type=int, default=d.viewpoint_depth)
-    p.add_argument("--direction-depth", type=int, default=d.direction_depth)
-    p.add_argument("--min-direction-depth", type=int, default=d.min_direction_depth)
+    p.add_argument("--viewpoint-depth", type=int, default=d.viewpoint_depth,
+                   help=f"uniform viewpoint-tree depth (default {d.viewpoint_depth})")
+    p.add_argument("--direction-depth", type=int, default=d.direction_depth,
+                   help=f"maximum direction-tree depth (default {d.direction_depth})")
+    p.add_argument("--viewpoint-refine", type=int, default=d.viewpoint_refine,
+                   help="extra viewpoint levels where the cameras' rays lack interpolants "
+                   f"(default {d.viewpoint_refine}; camera-region bakes only)")
+    p.add_argument("--min-direction-depth", type=int, default=d.min_direction_depth,
+                   help=f"direction trees split at least this deep (default {d.min_direction_depth})")
     p.add_argument("--tolerance", type=float, default=d.tolerance_deg, metavar="DEG",
                    help="bake angular tolerance (degrees)")
     p.add_argument("--tolerance-dist", type=float, default=d.tolerance_dist, metavar="REL",
@@ -76,6 +82,7 @@ def _bake(scene, args, out, st):
     from .ritree.region import region_for_cameras
     params = ritree.BakeParams(
         viewpoint_depth=args.viewpoint_depth, direction_depth=args.direction_depth,
+        viewpoint_refine=args.viewpoint_refine,
         min_direction_depth=args.min_direction_depth, tolerance_deg=args.tolerance,
         tolerance_dist=args.tolerance_dist, search_steps=args.search_steps).validate()
     region = None
@@ -306,7 +313,7 @@ def build_parser():
     p.add_argument("--workers", type=int, default=None)
     _bake_opts(p)
     _tree_opts(p)
-    p.set_defaults(fn=cmd_demo, viewpoint_depth=4, direction_depth=5)
+    p.set_defaults(fn=cmd_demo)
     return ap
 
 

@@ -184,6 +184,13 @@ def _net_measures(pts: np.ndarray):
     return dev, dev_u, dev_v, len_u, len_v, cosines.min(axis=1)
 
 
+def normal_cone_half_angle(ctrl: np.ndarray) -> np.ndarray:
+    """(M,) half-angle (radians) of the normal cone of homogeneous nets (M, p+1, q+1, 4):
+    a bound for polynomial nets, an estimate for rational ones (see _net_measures)."""
+    pts = ctrl[..., :3] / ctrl[..., 3:]
+    return np.arccos(np.clip(_net_measures(pts)[5], -1.0, 1.0))
+
+
 def subdivide_flat(pieces: BezierPieces, flat_tol: float, max_depth: int = 12) -> SubPatches:
     """Subdivide every piece until each sub-patch's control net deviates from the bilinear
     interpolation of its corner control points by <= flat_tol (world units) and its normal cone

@@ -15,11 +15,14 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from .cache import fingerprint, load_tree, save_tree
+from .cache import TreeCacheError, fingerprint, load_tree, save_tree
 from .codec import decode_points, decode_unit_vectors, encode_points, encode_unit_vectors
 from .quadtree import Forest
 
 SAMPLE_FIELDS = ("out_o", "out_d", "point", "normal", "patch", "null", "tree")
+# Version of the tree's array layout inside a .rit file (the file format has its own version):
+# a reader refuses other layouts with a message to re-bake.
+TREE_LAYOUT = 1
 
 
 @dataclass
@@ -129,10 +132,14 @@ class PackedSamples:
         return len(self.patch)
 
     def gather(self, ids) -> np.ndarray:
-        return np.concatenate([decode_points(self.out_o_q[ids], self.lo, self.hi),
-                               decode_unit_vectors(self.out_d_q[ids]),
-                               decode_points(self.point_q[ids], self.lo, self.hi),
-                               decode_unit_vectors(self.normal_q[ids])], axis=-1)
+        """(..., 12) float64 values of sample ids; each distinct sample is decoded once."""
+        ids = np.asarray(ids)
+        u, inv = np.unique(ids, return_inverse=True)
+        vals = np.concatenate([decode_points(self.out_o_q[u], self.lo, self.hi),
+                               decode_unit_vectors(self.out_d_q[u]),
+                               decode_points(self.point_q[u], self.lo, self.hi),
+                               decode_unit_vectors(self.normal_q[u])], axis=-1)
+        return vals[inv.reshape(ids.shape)]
 
 
 @dataclass
@@ -176,11 +183,21 @@ class RITree:
         return out
 
     def header(self) -> dict:
-        return {"params": asdict(self.params), "diag": self.diag, **self.meta}
+        return {"layout": TREE_LAYOUT, "params": asdict(self.params), "diag": self.diag,
+                **self.meta}
+
+    _ARRAYS = ("box_lo", "box_hi", "class_of", "vp_pos", "vp_face", "dir_rect", "ex_node", "ex_kind",
+               "ex_ids", "ex_pos", "ex_corner") + tuple(f"s.{k}" for k in PackedSamples.FIELDS)
 
     @classmethod
     def from_parts(cls, header: dict, arrays: dict) -> "RITree":
-        a = arrays
+        if header.get("layout") != TREE_LAYOUT:
+            raise TreeCacheError(f"RI-Tree layout {header.get('layout')!r} is not supported: "
+                                 f"this riray reads layout {TREE_LAYOUT}; re-bake the tree")
+        missing = [k for k in cls._ARRAYS if k not in arrays]
+        if missing:
+            raise TreeCacheError(f"RI-Tree file lacks arrays {missing}; re-bake the tree")
+        a = {k: np.asarray(v) for k, v in arrays.items()}   # plain views of the memory map
         return cls(params=BakeParams(**header["params"]).validate(), box_lo=a["box_lo"],
                    box_hi=a["box_hi"], diag=float(header["diag"]), class_of=a["class_of"],
                    vp_forest=Forest.from_arrays(a, "vp"), vp_pos=a["vp_pos"],
@@ -190,7 +207,7 @@ class RITree:
                                          lo=np.asarray(a["box_lo"]), hi=np.asarray(a["box_hi"])),
                    ex_node=a["ex_node"], ex_kind=a["ex_kind"], ex_ids=a["ex_ids"],
                    ex_pos=a["ex_pos"], ex_corner=a["ex_corner"],
-                   meta={k: v for k, v in header.items() if k not in ("params", "diag")})
+                   meta={k: v for k, v in header.items() if k not in ("layout", "params", "diag")})
 
 
 def save(tree: RITree, path) -> None:

@@ -47,10 +47,12 @@ SEED_MARGIN = 0.25
 # De Casteljau retry depth for pairs whose Newton run found no usable root (each level halves
 # the net in both directions; the ray is kept only where it meets a child's box).
 FALLBACK_LEVELS = 1
-# A root whose ray makes an angle below asin(GRAZING_COS) with the tangent plane may have a
-# nearer twin root in the same sub-patch: two roots in one sub-patch need the normal to turn by
-# at least twice that angle, which the sub-patch normal cone (bezier.CONE_HALF_ANGLE_DEG) bounds.
-GRAZING_COS = float(np.sin(np.radians(bz.CONE_HALF_ANGLE_DEG)))
+# A root whose ray makes an angle below the sub-patch's normal-cone half-angle with the tangent
+# plane may have a twin root in the same sub-patch (two roots in one net need the normal to turn
+# by at least twice that angle). The cone of a rational net is an estimate: it is widened by
+# this factor and margin before use.
+TWIN_CONE_SAFETY = 1.5
+TWIN_CONE_MARGIN_DEG = 1.0
 # Child boxes in the retry are padded by this fraction of the object diagonal (rounding).
 BOX_PAD_REL = 1e-12
 # Self-intersection guard: hits closer than this (relative to the object diagonal) are ignored.
@@ -85,6 +87,7 @@ class _Group:
 
     ctrl: np.ndarray      # (M, p+1, q+1, 4) homogeneous
     patch: np.ndarray     # (M,) patch id
+    cone_sin: np.ndarray  # (M,) sine of the (widened) normal-cone half-angle: grazing limit
     u0: np.ndarray        # (M,) NURBS parameter rectangle of the sub-patch
     u1: np.ndarray
     v0: np.ndarray
@@ -123,7 +126,9 @@ class PatchTracer:
             pi = sub.piece
             du = pieces.u1[pi] - pieces.u0[pi]
             dv = pieces.v1[pi] - pieces.v0[pi]
-            rec = (sub.ctrl, np.full(len(pi), pid),
+            cone = TWIN_CONE_SAFETY * bz.normal_cone_half_angle(sub.ctrl) \
+                + np.radians(TWIN_CONE_MARGIN_DEG)
+            rec = (sub.ctrl, np.full(len(pi), pid), np.sin(np.minimum(cone, np.pi / 2)),
                    pieces.u0[pi] + du * sub.s0, pieces.u0[pi] + du * sub.s1,
                    pieces.v0[pi] + dv * sub.t0, pieces.v0[pi] + dv * sub.t1,
                    sub.s0, sub.s1, sub.t0, sub.t1, sub.lo, sub.hi)
@@ -131,10 +136,10 @@ class PatchTracer:
         self.groups: list[_Group] = []
         los, his, gid = [], [], []
         for g, recs in enumerate(groups.values()):
-            cat = [np.concatenate([r[k] for r in recs]) for k in range(12)]
-            self.groups.append(_Group(*cat[:10]))
-            los.append(cat[10])
-            his.append(cat[11])
+            cat = [np.concatenate([r[k] for r in recs]) for k in range(13)]
+            self.groups.append(_Group(*cat[:11]))
+            los.append(cat[11])
+            his.append(cat[12])
             gid.append(np.full(len(cat[0]), g))
         if los:
             self.sub_group = np.concatenate(gid)
@@ -327,7 +332,7 @@ class PatchTracer:
         self._record(res, best_t, grp, sp[good[first]], rr[first], tt[first], P[first],
                      Ps[first], Pt[first], nrm[first], ln[first], s_sub[good[first]],
                      t_sub[good[first]])
-        g = np.flatnonzero(np.abs(cos) < GRAZING_COS)
+        g = np.flatnonzero(np.abs(cos) < grp.cone_sin[sp[good]])
         if not twin or len(g) == 0:
             return
         # the ray direction within the tangent plane, in parameter units per unit length
