@@ -1,0 +1,130 @@
+"""The seam between the add-on and the RI-Tree (core/ritree). No bpy: this module runs in
+Blender *and* in the bake worker process.
+
+The add-on only ever calls the functions below:
+
+    bake_tree(scene, params, progress, cancel) -> RITree          (worker process)
+    save_tree(tree, path, meta) / read_header(path) / load_tree(path)
+    estimate_bake(scene, params) -> {"time_s", "bytes", "rays"}
+    tree_object_fn(scene_tracer, tree, header, options) -> object_fn   (engine)
+
+``scene`` is a core Scene (the object, the environment and, for camera-driven bakes, one camera
+per camera and frame); ``params`` holds riray_addon.properties.BAKE_KEYS plus "width" and
+"height"; progress(fraction, message) and cancel() -> bool are polled between trace chunks.
+Cache files are core's .rit files (docs/tree-format.md); the add-on's own meta data (object,
+fingerprint of geometry + transform + material, parameters) rides in the header under "addon".
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import fields
+
+import numpy as np
+
+from ..core.render.exact import SceneTracer
+from ..core.ritree import bake as ritree_bake
+from ..core.ritree import cache as ritree_cache
+from ..core.ritree import tree as ritree
+from ..core.ritree.query import OUTSIDE, TRACED, QueryOptions, TreeQuery
+from ..core.ritree.region import region_for_cameras
+
+BACKEND = "ritree"
+CALIBRATION_RAYS = 256          # rays traced to measure this object's cost per ray (estimate)
+# Estimate model: samples per baked direction tree and bytes per sample (compact cache), from
+# the sample scenes' close-view bakes at the paper's depths (docs/benchmarks.md).
+EST_SAMPLES_PER_TREE = 120
+EST_BYTES_PER_SAMPLE = 40
+
+
+class BakeCancelled(Exception):
+    """Raised by bake_tree when cancel() turned true."""
+
+
+def bake_params(params: dict) -> ritree.BakeParams:
+    """BakeParams from the add-on's parameter dict (unknown keys ignored)."""
+    names = {f.name for f in fields(ritree.BakeParams)}
+    return ritree.BakeParams(**{k: v for k, v in params.items() if k in names}).validate()
+
+
+def bake_tree(scene, params: dict, progress, cancel):
+    """Bake the RI-Tree of ``scene.object`` (runs in the worker process)."""
+    st = SceneTracer(scene)
+    bp = bake_params(params)
+    region = None
+    if params.get("bake_for_cameras", True) and scene.cameras:
+        region = region_for_cameras(st, bp, scene.cameras, int(params["width"]),
+                                    int(params["height"]))
+    try:
+        return ritree_bake.bake(st, bp, region, progress=progress, cancel=cancel)
+    except ritree_bake.BakeCancelled as exc:
+        raise BakeCancelled() from exc
+
+
+def save_tree(tree, path: str, meta: dict) -> int:
+    """Write the cache file atomically (see core/ritree/cache.py). Returns its size."""
+    header = tree.header()
+    header["addon"] = meta
+    ritree_cache.save_tree(path, header, tree.arrays())
+    return os.path.getsize(path)
+
+
+def read_header(path: str) -> dict | None:
+    """The cache's header document {"backend", "tree", "meta"}, or None when the file is
+    missing or not a riray tree."""
+    try:
+        header = ritree_cache.describe(path)["header"]
+    except (OSError, ValueError):
+        return None
+    return {"backend": BACKEND, "tree": header, "meta": header.get("addon", {})}
+
+
+def load_tree(path: str):
+    """(RITree, header document); the arrays stay memory-mapped."""
+    tree = ritree.load(path)
+    return tree, {"backend": BACKEND, "tree": tree.header(), "meta": tree.meta.get("addon", {})}
+
+
+def estimate_bake(scene, params: dict) -> dict:
+    """Bake time (s) and cache size (bytes) before baking: the direction trees the region needs
+    times a typical sample count, times the measured cost of one ray through this object."""
+    st = SceneTracer(scene)
+    bp = bake_params(params)
+    rng = np.random.default_rng(1)
+    c = 0.5 * (st.tracer.lo + st.tracer.hi)
+    r = 0.5 * max(st.tracer.diag, 1e-9)
+    o = c + 1.5 * r * _unit(rng.normal(size=(CALIBRATION_RAYS, 3)))
+    d = _unit(c + 0.5 * r * rng.uniform(-1, 1, (CALIBRATION_RAYS, 3)) - o)
+    t0 = time.perf_counter()
+    st.object_function(o, d)
+    per_ray = (time.perf_counter() - t0) / CALIBRATION_RAYS
+    if params.get("bake_for_cameras", True) and scene.cameras:
+        region = region_for_cameras(st, bp, scene.cameras, int(params["width"]),
+                                    int(params["height"]))
+        trees = len(region.tree_keys) * (1 + 0.5 * bp.viewpoint_refine)
+    else:
+        trees = 6 * (2 ** bp.viewpoint_depth + 1) ** 2 * 3
+    rays = int(trees * EST_SAMPLES_PER_TREE)
+    return {"time_s": rays * per_ray, "bytes": float(rays * EST_BYTES_PER_SAMPLE),
+            "rays": rays, "per_ray_s": per_ray}
+
+
+def _unit(v):
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def tree_object_fn(st, tree, doc: dict, options: dict | None = None):
+    """``object_fn(origins, dirs, tmax) -> (ObjectRays, extra)`` answering object rays through
+    the tree with the render-time rules ``options`` (QueryOptions keywords);
+    ``extra["traced"]`` is the (N,) bool mask of rays that fell back to exact tracing."""
+    query = TreeQuery(tree, st, QueryOptions(**(options or {})))
+
+    def object_fn(o, d, tmax):
+        res, ans, _, stats = query(o, d, tmax)
+        return res, {"traced": (ans == TRACED) | (ans == OUTSIDE), **stats}
+    return object_fn
+
+
+__all__ = ["BACKEND", "BakeCancelled", "bake_tree", "save_tree", "read_header", "load_tree",
+           "estimate_bake", "tree_object_fn"]

@@ -1,0 +1,514 @@
+"""Blender materials / worlds -> core materials, with a report of every approximation.
+
+Specular object (``object_material``), from the shader at the active Material Output:
+  Glossy BSDF (also Anisotropic)          -> "mirror", tint = Color
+  Refraction BSDF                         -> "glass" (pure refraction), ior, tint = Color
+  Glass BSDF                              -> "dielectric" (Fresnel split at the first hit)
+  Principled BSDF  transmission >= 0.5    -> "dielectric", ior, tint = Base Color
+                   metallic >= 0.5        -> "mirror", tint = Base Color
+                   otherwise              -> "mirror" coat over a diffuse base: diffuse =
+                                             1 - F0(ior), base colour = Base Color
+Roughness, textured inputs, mixes and other shaders are reported with what was used instead.
+Highlights (specular / shininess) come from material.riray.
+
+Environment (``environment_material``): Principled / Diffuse BSDF -> "diffuse" with the base
+colour; Emission (or a Principled with emission) -> "emission". Colour sources core supports:
+constant; Image Texture (UV, optional uniform Mapping scale); Checker Texture (colours swapped
+to core's parity convention; a Mapping with one zero axis scale gives stripes); a linear
+gradient = Color Ramp (2 stops, linear) or Mix (A/B) driven by [Map Range ->] Separate XYZ of
+UV / Object coordinates. Other nodes -> the socket's own colour, reported.
+
+World (``export_world``): Background colour (constant), a Color Ramp on Separate XYZ.Z of the
+Generated/Normal/Object coordinate (core's horizon -> zenith gradient), or an equirectangular
+Environment Texture; strength; ambient from world.riray.ambient.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..core.scene.model import Material, ObjectMaterial, Texture, World
+
+# Below this the roughness of a specular shader is treated as zero without a report.
+ROUGH_OK = 0.02
+# Principled weights are snapped to 0/1 at this threshold (reports the approximation).
+SNAP = 0.5
+DEFAULT_COLOR = (0.8, 0.8, 0.8)
+
+
+def _rgb(c) -> tuple[float, float, float]:
+    return (float(c[0]), float(c[1]), float(c[2]))
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+# --------------------------------------------------------------------------- node graph helpers
+def _output_node(tree):
+    outs = [n for n in tree.nodes if n.type in ("OUTPUT_MATERIAL", "OUTPUT_WORLD")]
+    for n in outs:
+        if getattr(n, "is_active_output", False) and getattr(n, "target", "ALL") in ("ALL", "CYCLES"):
+            return n
+    for n in outs:
+        if getattr(n, "target", "ALL") in ("ALL", "CYCLES"):
+            return n
+    return outs[0] if outs else None
+
+
+def _source(socket):
+    """(node, output socket) feeding an input socket, through reroutes; None if unlinked."""
+    seen = 0
+    while socket.is_linked and seen < 64:
+        link = socket.links[0]
+        if not link.is_valid or getattr(link, "is_muted", False):
+            return None
+        node = link.from_node
+        if node.type == "REROUTE":
+            socket = node.inputs[0]
+            seen += 1
+            continue
+        return node, link.from_socket
+    return None
+
+
+def _input(node, *names):
+    """The first input socket matching one of the identifiers / names."""
+    for nm in names:
+        for s in node.inputs:
+            if s.identifier == nm:
+                return s
+        if nm in node.inputs:
+            return node.inputs[nm]
+    return None
+
+
+def _value(node, *names, default=0.0):
+    s = _input(node, *names)
+    return float(s.default_value) if s is not None else float(default)
+
+
+def _color_value(socket) -> tuple[float, float, float]:
+    return _rgb(socket.default_value)
+
+
+class _Ctx:
+    """Where a colour comes from, for the messages."""
+
+    def __init__(self, report, owner: str, has_uvs: bool = True, identity: bool = True):
+        self.report = report
+        self.owner = owner
+        self.has_uvs = has_uvs
+        self.identity = identity
+
+    def warn(self, msg: str) -> None:
+        self.report.warning(f"{self.owner}: {msg}")
+
+
+# --------------------------------------------------------------------------- coordinates
+def _coords(socket, ctx: _Ctx, default: str) -> tuple[str, np.ndarray]:
+    """(coords, scale xyz) of a texture's Vector input: "uv" or "world", with a Mapping
+    node's scale. ``default`` is what an unlinked input means for this node."""
+    scale = np.ones(3)
+    src = _source(socket) if socket is not None else None
+    if src is not None and src[0].type == "MAPPING":
+        node = src[0]
+        if node.vector_type not in ("POINT", "TEXTURE"):
+            ctx.warn(f"Mapping type {node.vector_type} not supported; ignored")
+        loc = _input(node, "Location")
+        rot = _input(node, "Rotation")
+        sc = _input(node, "Scale")
+        if loc is not None and (loc.is_linked or np.any(np.abs(loc.default_value) > 0)):
+            ctx.warn("Mapping location ignored")
+        if rot is not None and (rot.is_linked or np.any(np.abs(rot.default_value) > 0)):
+            ctx.warn("Mapping rotation ignored")
+        if sc is not None and not sc.is_linked:
+            scale = np.array(sc.default_value[:3], dtype=np.float64)
+        src = _source(node.inputs[0])
+        if src is None:
+            return _coords_default(default, ctx), scale
+    if src is None:
+        return _coords_default(default, ctx), scale
+    node, out = src
+    if node.type == "UVMAP" or (node.type == "TEX_COORD" and out.name == "UV"):
+        if node.type == "UVMAP" and node.uv_map:
+            ctx.report.info(f"{ctx.owner}: UV map {node.uv_map!r}: the mesh's active UV map is used")
+        return ("uv" if ctx.has_uvs else "world"), scale
+    if node.type == "TEX_COORD" and out.name == "Object":
+        if getattr(node, "object", None) is not None or not ctx.identity:
+            ctx.warn("Object texture coordinates approximated by world coordinates (the "
+                     "object's transform is not the identity)")
+        return "world", scale
+    if node.type == "TEX_COORD" and out.name == "Generated":
+        return _coords_default("generated", ctx), scale
+    ctx.warn(f"texture coordinates from {node.name!r} not supported; using "
+             f"{'UV' if ctx.has_uvs else 'world'} coordinates")
+    return ("uv" if ctx.has_uvs else "world"), scale
+
+
+def _coords_default(default: str, ctx: _Ctx) -> str:
+    if default == "uv":
+        if not ctx.has_uvs:
+            ctx.warn("image texture without UVs; using world x, y")
+            return "world"
+        return "uv"
+    ctx.warn("Generated texture coordinates not supported; using "
+             f"{'UV' if ctx.has_uvs else 'world'} coordinates")
+    return "uv" if ctx.has_uvs else "world"
+
+
+# --------------------------------------------------------------------------- colour sources
+def image_pixels(img) -> np.ndarray | None:
+    """(H, W, 3) linear float64, top row first, or None if the image has no pixels."""
+    w, h = img.size[0], img.size[1]
+    if w == 0 or h == 0:
+        return None
+    ch = img.channels
+    buf = np.empty(w * h * ch, dtype=np.float32)
+    img.pixels.foreach_get(buf)
+    px = buf.reshape(h, w, ch)[::-1, :, :3].astype(np.float64)
+    if px.shape[2] < 3:
+        px = np.repeat(px[:, :, :1], 3, axis=2)
+    cs = img.colorspace_settings.name
+    if not img.is_float and cs == "sRGB":
+        px = srgb_to_linear(px)
+    return np.ascontiguousarray(px)
+
+
+def _image_texture(node, ctx: _Ctx) -> Texture | None:
+    img = node.image
+    if img is None:
+        ctx.warn(f"image texture {node.name!r} has no image; using black")
+        return Texture(kind="constant", color=(0.0, 0.0, 0.0))
+    px = image_pixels(img)
+    if px is None:
+        ctx.warn(f"image {img.name!r} could not be read; using grey")
+        return Texture(kind="constant", color=DEFAULT_COLOR)
+    if node.projection != "FLAT":
+        ctx.warn(f"image projection {node.projection} not supported; flat")
+    if node.extension != "REPEAT":
+        ctx.warn(f"image extension {node.extension} not supported; repeat")
+    if node.interpolation != "Linear":
+        ctx.report.info(f"{ctx.owner}: image interpolation {node.interpolation} -> linear")
+    coords, scale = _coords(_input(node, "Vector"), ctx, "uv")
+    if not np.allclose(scale[:2], scale[0]):
+        ctx.warn("non-uniform Mapping scale on an image; using the x scale")
+    return Texture(kind="image", image=px, path=bpy_path(img), coords=coords,
+                   scale=float(scale[0]))
+
+
+def bpy_path(img) -> str | None:
+    return img.filepath or None
+
+
+def _checker(node, ctx: _Ctx) -> Texture:
+    c1, c2 = _input(node, "Color1"), _input(node, "Color2")
+    for s in (c1, c2):
+        if s.is_linked:
+            ctx.warn(f"linked checker colour {s.name} not supported; its own value is used")
+    sc = _input(node, "Scale")
+    if sc.is_linked:
+        ctx.warn("linked checker scale not supported; its own value is used")
+    coords, mscale = _coords(_input(node, "Vector"), ctx, "generated")
+    s = float(sc.default_value) * mscale
+    dims = 2 if coords == "uv" else 3
+    # Blender: color1 where the integer coordinates sum odd; core: color where they sum even.
+    a, b = _color_value(c2), _color_value(c1)
+    zero = np.abs(s[:dims]) < 1e-12
+    if zero.sum() == dims - 1:
+        axis = int(np.flatnonzero(~zero)[0])
+        return Texture(kind="stripes", color=a, color2=b, scale=float(s[axis]), axis=axis,
+                       coords=coords)
+    if not np.allclose(s[:dims], s[0]):
+        ctx.warn(f"non-uniform checker scale {tuple(np.round(s[:dims], 4))}; using {s[0]:g}")
+    return Texture(kind="checker", color=a, color2=b, scale=float(s[0]), coords=coords)
+
+
+def _gradient_value(socket, ctx: _Ctx):
+    """A scalar input computing clamp((c[axis] - start) / (end - start)): returns
+    (coords, axis, start, end) or None."""
+    src = _source(socket)
+    if src is None:
+        return None
+    node, out = src
+    start, end = 0.0, 1.0
+    if node.type == "MAP_RANGE":
+        if node.data_type != "FLOAT" or node.interpolation_type != "LINEAR":
+            return None
+        if _value(node, "To Min") != 0.0 or _value(node, "To Max") != 1.0 or not node.clamp:
+            ctx.warn("Map Range must map to [0, 1] with Clamp on; treated as such")
+        start, end = _value(node, "From Min"), _value(node, "From Max")
+        src = _source(_input(node, "Value"))
+        if src is None:
+            return None
+        node, out = src
+    if node.type != "SEPXYZ":
+        return None
+    axis = {"X": 0, "Y": 1, "Z": 2}[out.name]
+    coords, scale = _coords(node.inputs[0], ctx, "generated")
+    if abs(scale[axis]) < 1e-12:
+        return None
+    return coords, axis, start / scale[axis], end / scale[axis]
+
+
+def _ramp_stops(node, ctx: _Ctx):
+    ramp = node.color_ramp
+    els = list(ramp.elements)
+    if len(els) != 2 or ramp.interpolation != "LINEAR" or ramp.color_mode != "RGB":
+        ctx.warn(f"color ramp {node.name!r}: only 2 stops, linear RGB, are exact; using its "
+                 "first and last stops")
+    e0, e1 = els[0], els[-1]
+    return float(e0.position), float(e1.position), _rgb(e0.color), _rgb(e1.color)
+
+
+def color_texture(socket, ctx: _Ctx) -> Texture:
+    """The core Texture equal (or closest) to the colour at an input socket."""
+    src = _source(socket)
+    if src is None:
+        return Texture(kind="constant", color=_color_value(socket))
+    node, out = src
+    if node.type == "TEX_IMAGE":
+        return _image_texture(node, ctx)
+    if node.type == "TEX_CHECKER":
+        if out.name != "Color":
+            ctx.warn("checker Fac output used as a colour; using its colours")
+        return _checker(node, ctx)
+    if node.type == "VALTORGB":
+        g = _gradient_value(_input(node, "Fac", "Factor"), ctx)
+        p0, p1, c0, c1 = _ramp_stops(node, ctx)
+        if g is not None:
+            coords, axis, a, b = g
+            return Texture(kind="gradient", color=c0, color2=c1, axis=axis,
+                           start=a + p0 * (b - a), end=a + p1 * (b - a), coords=coords)
+        ctx.warn(f"color ramp {node.name!r}: its factor is not a coordinate gradient; using "
+                 "the first stop's colour")
+        return Texture(kind="constant", color=c0)
+    if node.type in ("MIX", "MIX_RGB"):
+        if node.type == "MIX":
+            if node.data_type != "RGBA":
+                return _fallback(socket, node, ctx)
+            fac, a, b = (_input(node, "Factor_Float"), _input(node, "A_Color"),
+                         _input(node, "B_Color"))
+        else:
+            fac, a, b = _input(node, "Fac", "Factor"), _input(node, "Color1"), _input(node, "Color2")
+        if node.blend_type != "MIX" or a.is_linked or b.is_linked:
+            return _fallback(socket, node, ctx)
+        g = _gradient_value(fac, ctx)
+        if g is None:
+            if fac.is_linked:
+                return _fallback(socket, node, ctx)
+            t = float(fac.default_value)
+            ca, cb = np.array(_color_value(a)), np.array(_color_value(b))
+            return Texture(kind="constant", color=tuple(float(x) for x in (1 - t) * ca + t * cb))
+        coords, axis, start, end = g
+        return Texture(kind="gradient", color=_color_value(a), color2=_color_value(b),
+                       axis=axis, start=start, end=end, coords=coords)
+    return _fallback(socket, node, ctx)
+
+
+def _fallback(socket, node, ctx: _Ctx) -> Texture:
+    col = _color_value(socket) if hasattr(socket, "default_value") else DEFAULT_COLOR
+    ctx.warn(f"colour from node {node.name!r} ({node.type}) not supported; using "
+             f"({col[0]:.3g}, {col[1]:.3g}, {col[2]:.3g})")
+    return Texture(kind="constant", color=col)
+
+
+def _const_color(socket, ctx: _Ctx, what: str) -> tuple[float, float, float]:
+    if socket.is_linked:
+        tex = color_texture(socket, ctx)
+        col = tex.color if tex.kind != "image" else tuple(float(x) for x in tex.image.reshape(-1, 3).mean(0))
+        ctx.warn(f"textured {what} is not simulated on the specular object; using "
+                 f"({col[0]:.3g}, {col[1]:.3g}, {col[2]:.3g})")
+        return col
+    return _color_value(socket)
+
+
+def _const_value(socket, ctx: _Ctx, what: str) -> float:
+    if socket.is_linked:
+        ctx.warn(f"linked {what} not supported; using {float(socket.default_value):g}")
+    return float(socket.default_value)
+
+
+# --------------------------------------------------------------------------- the shader
+def _surface_shader(tree, ctx: _Ctx):
+    out = _output_node(tree) if tree is not None else None
+    if out is None:
+        return None
+    src = _source(out.inputs["Surface"])
+    if src is None:
+        return None
+    node = src[0]
+    depth = 0
+    while node.type == "MIX_SHADER" and depth < 8:
+        fac = node.inputs[0]
+        t = float(fac.default_value)
+        pick = 2 if (not fac.is_linked and t >= 0.5) else 1
+        other = 1 if pick == 2 else 2
+        s = _source(node.inputs[pick]) or _source(node.inputs[other])
+        ctx.warn(f"Mix Shader {node.name!r}: core simulates one shader; using input {pick}")
+        if s is None:
+            return None
+        node = s[0]
+        depth += 1
+    return node
+
+
+def _roughness(node, ctx: _Ctx) -> None:
+    r = _input(node, "Roughness")
+    if r is not None and (r.is_linked or float(r.default_value) > ROUGH_OK):
+        ctx.warn(f"roughness {float(r.default_value):.3g} ignored: core simulates perfectly "
+                 "sharp reflection/refraction")
+
+
+def object_material(mat, report, owner: str = "") -> ObjectMaterial:
+    """The specular object's ObjectMaterial from a Blender material (None: a mirror)."""
+    name = f"{owner}: material {mat.name!r}" if mat is not None else owner
+    ctx = _Ctx(report, name)
+    if mat is None:
+        report.warning(f"{owner}: no material; rendered as a mirror")
+        return ObjectMaterial(kind="mirror", tint=(1.0, 1.0, 1.0), specular=0.25, shininess=96.0)
+    hl = dict(specular=float(mat.riray.specular), shininess=float(mat.riray.shininess))
+    node = _surface_shader(mat.node_tree, ctx)
+    if node is None:
+        ctx.warn("no shader connected to the Material Output; rendered as a mirror tinted with "
+                 "the viewport colour")
+        return ObjectMaterial(kind="mirror", tint=_rgb(mat.diffuse_color), **hl)
+    t = node.type
+    if t == "BSDF_GLOSSY":
+        _roughness(node, ctx)
+        return ObjectMaterial(kind="mirror", tint=_const_color(_input(node, "Color"), ctx, "colour"),
+                              **hl)
+    if t in ("BSDF_REFRACTION", "BSDF_GLASS"):
+        _roughness(node, ctx)
+        ior = _const_value(_input(node, "IOR"), ctx, "IOR")
+        return ObjectMaterial(kind="glass" if t == "BSDF_REFRACTION" else "dielectric",
+                              ior=max(ior, 1e-3),
+                              tint=_const_color(_input(node, "Color"), ctx, "colour"), **hl)
+    if t == "BSDF_PRINCIPLED":
+        base = _const_color(_input(node, "Base Color"), ctx, "base colour")
+        metal = _const_value(_input(node, "Metallic"), ctx, "metallic")
+        trans = _const_value(_input(node, "Transmission Weight", "Transmission"), ctx,
+                             "transmission")
+        ior = _const_value(_input(node, "IOR"), ctx, "IOR")
+        _roughness(node, ctx)
+        for nm in ("Coat Weight", "Sheen Weight", "Subsurface Weight"):
+            s = _input(node, nm)
+            if s is not None and (s.is_linked or float(s.default_value) > 0):
+                ctx.warn(f"{nm} ignored")
+        if trans >= SNAP:
+            if trans < 1.0 or metal > 0:
+                ctx.warn(f"transmission {trans:g} / metallic {metal:g} -> a clear dielectric")
+            return ObjectMaterial(kind="dielectric", ior=max(ior, 1e-3), tint=base, **hl)
+        if metal >= SNAP:
+            if metal < 1.0:
+                ctx.warn(f"metallic {metal:g} -> a full mirror")
+            return ObjectMaterial(kind="mirror", tint=base, **hl)
+        f0 = ((ior - 1.0) / (ior + 1.0)) ** 2
+        ctx.warn(f"non-metallic opaque Principled BSDF -> a mirror coat (reflectance {f0:.3g}) "
+                 "over a diffuse base")
+        return ObjectMaterial(kind="mirror", tint=(1.0, 1.0, 1.0), base_color=base,
+                              diffuse=float(1.0 - f0), **hl)
+    if t == "BSDF_DIFFUSE":
+        ctx.warn("Diffuse BSDF on the specular object -> diffuse shading only")
+        return ObjectMaterial(kind="mirror", tint=(0.0, 0.0, 0.0),
+                              base_color=_const_color(_input(node, "Color"), ctx, "colour"),
+                              diffuse=1.0, **hl)
+    ctx.warn(f"shader {node.name!r} ({t}) cannot be simulated; rendered as a mirror")
+    return ObjectMaterial(kind="mirror", tint=(1.0, 1.0, 1.0), **hl)
+
+
+def environment_material(mat, report, obj, has_uvs: bool = True) -> Material:
+    """A core environment Material (named after the Blender material)."""
+    ident = True
+    try:
+        m = np.array(obj.matrix_world)
+        ident = bool(np.allclose(m, np.eye(4), atol=1e-9))
+    except (AttributeError, TypeError):
+        pass
+    if mat is None:
+        return Material(name="__default__", kind="diffuse",
+                        color=Texture(kind="constant", color=DEFAULT_COLOR))
+    ctx = _Ctx(report, f"material {mat.name!r}", has_uvs=has_uvs, identity=ident)
+    node = _surface_shader(mat.node_tree, ctx)
+    if node is None:
+        return Material(name=mat.name, kind="diffuse",
+                        color=Texture(kind="constant", color=_rgb(mat.diffuse_color)))
+    t = node.type
+    if t == "EMISSION":
+        return Material(name=mat.name, kind="emission",
+                        color=color_texture(_input(node, "Color"), ctx),
+                        strength=_const_value(_input(node, "Strength"), ctx, "strength"))
+    if t == "BSDF_PRINCIPLED":
+        es = _input(node, "Emission Strength")
+        ec = _input(node, "Emission Color")
+        if es is not None and float(es.default_value) > 0 and (
+                ec.is_linked or max(_color_value(ec)) > 0):
+            return Material(name=mat.name, kind="emission", color=color_texture(ec, ctx),
+                            strength=float(es.default_value))
+        m = _input(node, "Metallic")
+        tr = _input(node, "Transmission Weight")
+        if (m is not None and float(m.default_value) > 0) or (
+                tr is not None and float(tr.default_value) > 0):
+            ctx.warn("metallic/transmissive environment surfaces are shaded as diffuse")
+        return Material(name=mat.name, kind="diffuse",
+                        color=color_texture(_input(node, "Base Color"), ctx))
+    if t == "BSDF_DIFFUSE":
+        return Material(name=mat.name, kind="diffuse", color=color_texture(_input(node, "Color"), ctx))
+    col = _input(node, "Color")
+    ctx.warn(f"shader {t} is shaded as diffuse in the environment (only the specular object "
+             "reflects)")
+    tex = color_texture(col, ctx) if col is not None else Texture(kind="constant",
+                                                                  color=DEFAULT_COLOR)
+    return Material(name=mat.name, kind="diffuse", color=tex)
+
+
+def export_world(world, report) -> World:
+    """The core World (colour, horizon->zenith gradient or equirectangular image)."""
+    if world is None:
+        report.info("the scene has no world; the background is black")
+        return World(kind="color", color=(0.0, 0.0, 0.0))
+    ambient = float(world.riray.ambient)
+    ctx = _Ctx(report, f"world {world.name!r}")
+    tree = world.node_tree
+    out = _output_node(tree) if tree is not None else None
+    src = _source(out.inputs["Surface"]) if out is not None else None
+    if src is None:
+        return World(kind="color", color=_rgb(world.color), ambient=ambient)
+    node = src[0]
+    if node.type != "BACKGROUND":
+        ctx.warn(f"world shader {node.type} not supported; using the world colour")
+        return World(kind="color", color=_rgb(world.color), ambient=ambient)
+    strength = _const_value(_input(node, "Strength"), ctx, "strength")
+    col = _input(node, "Color")
+    csrc = _source(col)
+    if csrc is None:
+        return World(kind="color", color=_color_value(col), strength=strength, ambient=ambient)
+    cnode = csrc[0]
+    if cnode.type == "TEX_ENVIRONMENT":
+        if cnode.projection != "EQUIRECTANGULAR":
+            ctx.warn(f"environment projection {cnode.projection} not supported; equirectangular")
+        if _source(cnode.inputs[0]) is not None:
+            ctx.warn("environment texture vector input ignored")
+        px = image_pixels(cnode.image) if cnode.image is not None else None
+        if px is None:
+            ctx.warn("environment texture has no image; using black")
+            return World(kind="color", color=(0.0, 0.0, 0.0), strength=strength, ambient=ambient)
+        return World(kind="image", image=px, path=bpy_path(cnode.image), strength=strength,
+                     ambient=ambient)
+    if cnode.type == "VALTORGB":
+        s = _source(_input(cnode, "Fac", "Factor"))
+        ok = (s is not None and s[0].type == "SEPXYZ" and s[1].name == "Z")
+        if ok:
+            d = _source(s[0].inputs[0])
+            ok = d is None or (d[0].type == "TEX_COORD" and d[1].name in ("Generated", "Normal",
+                                                                          "Object"))
+        p0, p1, c0, c1 = _ramp_stops(cnode, ctx)
+        if ok:
+            if abs(p0) > 1e-6 or abs(p1 - 1.0) > 1e-6:
+                ctx.warn("sky gradient stops not at 0 and 1; stretched to horizon -> zenith")
+            return World(kind="gradient", color=c0, zenith=c1, strength=strength, ambient=ambient)
+        ctx.warn("world colour ramp not driven by the view direction's Z; using its first stop")
+        return World(kind="color", color=c0, strength=strength, ambient=ambient)
+    ctx.warn(f"world colour from {cnode.name!r} ({cnode.type}) not supported; using "
+             f"{_color_value(col)}")
+    return World(kind="color", color=_color_value(col), strength=strength, ambient=ambient)

@@ -1,0 +1,439 @@
+"""Operators: riray.bake (+ cancel / clear / estimate), riray.export_scene, spline class groups.
+
+``bpy.ops.riray.bake(...)`` takes the tree parameters as options (those given are stored on the
+object first). From the UI (invoke) it runs modal: the bake runs in a worker process, a timer
+polls it, the panel and the status bar show a progress bar with ETA, Esc or the Cancel button
+stops it (any previous cache is kept). From a script (execute) it blocks until the bake ends
+unless ``wait=False`` (then a bpy.app.timers function finishes it; in background mode call
+``poll_jobs()`` yourself).
+"""
+
+
+import json
+import os
+import time
+
+import bpy
+import numpy as np
+from bpy.props import BoolProperty, EnumProperty, StringProperty
+
+from ..core.scene.io import save_scene
+from . import backend, cache
+from .export import export_camera, export_scene, object_fingerprint
+from .jobs import BakeJob, format_bytes, format_duration
+from .properties import BAKE_KEYS, QUERY_KEYS, bake_params
+from .report import ExportError, Report
+
+JOBS: dict[str, BakeJob] = {}      # object name -> its current / last bake job
+TIMER_S = 0.1
+
+
+# --------------------------------------------------------------------------- helpers
+def target_object(context, name: str = ""):
+    if name:
+        obj = bpy.data.objects.get(name)
+        if obj is None:
+            raise ExportError(f"no object named {name!r}")
+        return obj
+    obj = context.active_object if hasattr(context, "active_object") else None
+    if obj is None:
+        obj = context.scene.riray.target
+    if obj is None:
+        raise ExportError("no active object: select the NURBS surface to bake")
+    return obj
+
+
+def running_job(obj_name: str | None = None) -> BakeJob | None:
+    for name, job in JOBS.items():
+        if job.running and (obj_name is None or name == obj_name):
+            return job
+    return None
+
+
+def camera_views(context, params: dict, report: Report) -> list:
+    """Core cameras for every scene camera at every frame of the range (or the current frame),
+    named "<camera>@<frame>": what a camera-driven bake must cover."""
+    scene = context.scene
+    cams = [o for o in scene.objects if o.type == "CAMERA"]
+    frames = [scene.frame_current]
+    if params.get("use_frame_range"):
+        frames = list(range(scene.frame_start, scene.frame_end + 1, max(1, scene.frame_step)))
+    out, keep, seen = [], scene.frame_current, set()
+    try:
+        for f in frames:
+            if f != scene.frame_current:
+                scene.frame_set(f)
+            dg = context.evaluated_depsgraph_get()
+            for c in cams:
+                cam = export_camera(c.evaluated_get(dg), scene, report)
+                key = (c.name, np.round(np.asarray(cam.matrix_world), 9).tobytes(), cam.kind,
+                       cam.lens, cam.ortho_scale, cam.shift_x, cam.shift_y, cam.sensor_fit,
+                       cam.sensor_width, cam.sensor_height)
+                if key not in seen:                 # a still camera counts once
+                    seen.add(key)
+                    cam.name = f"{c.name}@{f}"
+                    out.append(cam)
+    finally:
+        if scene.frame_current != keep:
+            scene.frame_set(keep)
+    return out
+
+
+def prepare_bake(context, obj, report: Report):
+    """(core scene with the object + cameras, params, meta) for a bake of ``obj``. With "bake
+    for scene cameras" the scene's cameras are every camera at every frame of the range, and
+    params carries the render size they are seen at."""
+    depsgraph = context.evaluated_depsgraph_get()
+    scene = export_scene(depsgraph, obj, report, cameras="ALL", environment=False)
+    params = bake_params(obj)
+    params["width"], params["height"] = scene.render.width, scene.render.height
+    if params["bake_for_cameras"]:
+        views = camera_views(context, params, report)
+        if views:
+            scene.cameras = views
+        else:
+            report.warning("bake for scene cameras: the scene has no camera; baking everywhere")
+            params["bake_for_cameras"] = False
+    params["camera_positions"] = [[float(x) for x in np.asarray(c.matrix_world)[:3, 3]]
+                                  for c in scene.cameras]
+    meta = {"object": obj.name, "fingerprint": object_fingerprint(obj, depsgraph),
+            "params": params, "blend": bpy.data.filepath, "created": time.time(),
+            "patches": len(scene.object.patches)}
+    return scene, params, meta
+
+
+def start_bake(context, obj, report: Report | None = None) -> BakeJob:
+    report = report if report is not None else Report()
+    if running_job(obj.name):
+        raise ExportError(f"{obj.name}: a bake is already running")
+    scene, params, meta = prepare_bake(context, obj, report)
+    if context.scene.riray.target is None:
+        context.scene.riray.target = obj
+    job = BakeJob(obj.name, cache.cache_path(obj)).start(scene, params, meta)
+    JOBS[obj.name] = job
+    return job
+
+
+def finish_job(job: BakeJob, report_fn=None) -> None:
+    """Main thread, once a job ended: record the bake on the object and tell the user."""
+    obj = bpy.data.objects.get(job.object_name)
+    msg_level, msg = "INFO", ""
+    if job.state == "done":
+        doc = backend.read_header(job.cache_path) or {}
+        meta = doc.get("meta", {})
+        if obj is not None:
+            obj.riray.baked_fingerprint = meta.get("fingerprint", "")
+            obj.riray.baked_info = json.dumps({"bytes": job.bytes, "seconds": job.elapsed,
+                                               "backend": doc.get("backend", "")})
+        msg = (f"RI-Tree of {job.object_name} baked in {format_duration(job.elapsed)} "
+               f"({format_bytes(job.bytes)}) -> {job.cache_path}")
+    elif job.state == "cancelled":
+        msg_level, msg = "WARNING", f"bake of {job.object_name} cancelled; previous cache kept"
+    else:
+        msg_level, msg = "ERROR", f"bake of {job.object_name} failed: {job.error}"
+        if job.traceback:
+            print(job.traceback)
+    print(f"riray: {msg}")
+    if report_fn is not None:
+        report_fn({msg_level}, msg)
+    cache._on_load()          # forget memoized headers / fingerprints
+    _redraw()
+
+
+def poll_jobs() -> bool:
+    """Poll every running job, finishing the ones that ended; True while any still runs."""
+    any_running = False
+    for job in list(JOBS.values()):
+        if job.running:
+            if job.poll() == "running":
+                any_running = True
+            else:
+                finish_job(job)
+    _redraw()
+    return any_running
+
+
+def _timer_poll():
+    return TIMER_S if poll_jobs() else None
+
+
+def _redraw() -> None:
+    wm = getattr(bpy.context, "window_manager", None)
+    if wm is None:
+        return
+    for win in wm.windows:
+        for area in win.screen.areas:
+            if area.type in {"PROPERTIES", "VIEW_3D", "STATUSBAR"}:
+                area.tag_redraw()
+
+
+# --------------------------------------------------------------------------- operators
+def _param_props():
+    """Operator options mirroring the object's bake parameters (see properties)."""
+    from .properties import RIRAY_PG_object as PG
+    ann = PG.__annotations__
+    return {k: ann[k] for k in BAKE_KEYS + QUERY_KEYS}
+
+
+class RIRAY_OT_bake(bpy.types.Operator):
+    """Bake the RI-Tree of the object in a worker process (Esc cancels)"""
+    bl_idname = "riray.bake"
+    bl_label = "Bake RI-Tree"
+    bl_options = {"REGISTER"}
+
+    object: StringProperty(name="Object", default="",
+                           description="Object to bake (empty: the active object)")
+    cache_file: StringProperty(name="Cache file", default="", subtype="FILE_PATH",
+                               description="Cache file (empty: the object's setting)")
+    wait: BoolProperty(name="Wait", default=True,
+                       description="From scripts: block until the bake ends")
+    __annotations__.update(_param_props())
+
+    _timer = None
+    _job = None
+
+    def _apply_options(self, obj) -> None:
+        for k in BAKE_KEYS + QUERY_KEYS:
+            if self.properties.is_property_set(k):
+                setattr(obj.riray, k, getattr(self, k))
+        if self.cache_file:
+            obj.riray.cache_file = self.cache_file
+
+    def _start(self, context):
+        obj = target_object(context, self.object)
+        self._apply_options(obj)
+        report = Report()
+        job = start_bake(context, obj, report)
+        report.emit(self.report, "WARNING")
+        return job
+
+    def execute(self, context):
+        try:
+            job = self._start(context)
+        except ExportError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        if not self.wait:
+            if not bpy.app.timers.is_registered(_timer_poll):
+                bpy.app.timers.register(_timer_poll, first_interval=TIMER_S)
+            return {"FINISHED"}
+        wm = context.window_manager
+        wm.progress_begin(0, 1000)
+        last = [0.0]
+
+        def show(j):
+            wm.progress_update(int(1000 * j.fraction))
+            if time.time() - last[0] > 2.0:
+                last[0] = time.time()
+                print(f"riray: baking {j.object_name}: {100 * j.fraction:.0f}% "
+                      f"ETA {format_duration(j.eta)}  {j.message}", flush=True)
+        try:
+            job.wait(on_progress=show)
+        except KeyboardInterrupt:
+            job.cancel()
+            job.wait()
+        finally:
+            wm.progress_end()
+        finish_job(job, self.report)
+        return {"FINISHED"} if job.state == "done" else {"CANCELLED"}
+
+    def invoke(self, context, event):
+        if context.window is None or bpy.app.background:
+            return self.execute(context)
+        try:
+            self._job = self._start(context)
+        except ExportError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(TIMER_S, window=context.window)
+        wm.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == "ESC" and event.value == "PRESS":
+            job.cancel()
+            return {"RUNNING_MODAL"}
+        if event.type == "TIMER":
+            job.poll()
+            _redraw()
+            if not job.running:
+                context.window_manager.event_timer_remove(self._timer)
+                finish_job(job, self.report)
+                return {"FINISHED"} if job.state == "done" else {"CANCELLED"}
+        return {"PASS_THROUGH"}
+
+
+class RIRAY_OT_bake_cancel(bpy.types.Operator):
+    """Stop the running bake; the previous cache is kept"""
+    bl_idname = "riray.bake_cancel"
+    bl_label = "Cancel Bake"
+
+    object: StringProperty(name="Object", default="", description="Empty: every running bake")
+
+    def execute(self, context):
+        n = 0
+        for name, job in JOBS.items():
+            if job.running and (not self.object or name == self.object):
+                job.cancel()
+                n += 1
+        if not n:
+            self.report({"INFO"}, "no bake is running")
+        return {"FINISHED"}
+
+
+class RIRAY_OT_bake_clear(bpy.types.Operator):
+    """Delete the object's RI-Tree cache file"""
+    bl_idname = "riray.bake_clear"
+    bl_label = "Clear RI-Tree"
+
+    object: StringProperty(name="Object", default="")
+
+    def execute(self, context):
+        try:
+            obj = target_object(context, self.object)
+        except ExportError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        job = running_job(obj.name)
+        if job is not None:
+            self.report({"ERROR"}, "a bake is running; cancel it first")
+            return {"CANCELLED"}
+        path = cache.cache_path(obj)
+        if os.path.exists(path):
+            os.remove(path)
+            self.report({"INFO"}, f"removed {path}")
+        obj.riray.baked_fingerprint = ""
+        obj.riray.baked_info = ""
+        cache._on_load()
+        return {"FINISHED"}
+
+
+class RIRAY_OT_bake_estimate(bpy.types.Operator):
+    """Estimate bake time and cache size (traces a few hundred rays to measure the object)"""
+    bl_idname = "riray.bake_estimate"
+    bl_label = "Estimate"
+
+    object: StringProperty(name="Object", default="")
+
+    def execute(self, context):
+        try:
+            obj = target_object(context, self.object)
+            scene, params, _ = prepare_bake(context, obj, Report())
+        except ExportError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        est = backend.estimate_bake(scene, params)
+        obj.riray.estimate_time_s = est["time_s"]
+        obj.riray.estimate_bytes = est["bytes"]
+        obj.riray.estimate_key = estimate_key(obj)
+        self.report({"INFO"}, f"estimate: {format_duration(est['time_s'])}, "
+                              f"{format_bytes(est['bytes'])} ({est['rays']} rays)")
+        return {"FINISHED"}
+
+
+def estimate_key(obj) -> str:
+    return json.dumps(bake_params(obj), sort_keys=True)
+
+
+class RIRAY_OT_export_scene(bpy.types.Operator):
+    """Export the object and its environment as a riray JSON scene (images as .npy beside it)"""
+    bl_idname = "riray.export_scene"
+    bl_label = "Export riray Scene"
+
+    filepath: StringProperty(name="File", subtype="FILE_PATH", default="//riray_scene.json")
+    object: StringProperty(name="Object", default="")
+
+    def execute(self, context):
+        try:
+            obj = target_object(context, self.object)
+            report = Report()
+            scene = export_scene(context.evaluated_depsgraph_get(), obj, report)
+        except ExportError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        path = os.path.abspath(bpy.path.abspath(self.filepath))
+        write_scene_json(scene, path)
+        report.emit(self.report, "WARNING")
+        self.report({"INFO"}, f"wrote {path}")
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+
+def write_scene_json(scene, path: str) -> None:
+    """save_scene, writing in-memory images (textures, world) as .npy files beside the JSON."""
+    from ..core.render.image import write_float_image
+    stem = os.path.splitext(path)[0]
+    folder = os.path.dirname(path)
+    os.makedirs(folder, exist_ok=True)
+    for i, tex in enumerate([m.color for m in scene.materials.values()] + [scene.world]):
+        if getattr(tex, "image", None) is not None:
+            name = f"{os.path.basename(stem)}_img{i}.npy"
+            write_float_image(os.path.join(folder, name), tex.image)
+            tex.path = name
+    save_scene(scene, path)
+
+
+class RIRAY_OT_spline_groups_sync(bpy.types.Operator):
+    """Make one class-group entry per spline of the object"""
+    bl_idname = "riray.spline_groups_sync"
+    bl_label = "Sync Spline List"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return context.object is not None and context.object.type == "SURFACE"
+
+    def execute(self, context):
+        obj = context.object
+        groups = obj.riray.spline_groups
+        n = len(obj.data.splines)
+        while len(groups) < n:
+            groups.add()
+        while len(groups) > n:
+            groups.remove(len(groups) - 1)
+        return {"FINISHED"}
+
+
+class RIRAY_OT_spline_groups_join(bpy.types.Operator):
+    """Put all splines in one class, or give every spline its own class"""
+    bl_idname = "riray.spline_groups_set"
+    bl_label = "Set Spline Classes"
+    bl_options = {"REGISTER", "UNDO"}
+
+    mode: EnumProperty(items=[("JOIN", "Join All", "All splines form one class"),
+                              ("SPLIT", "Split All", "Every spline is its own class")])
+
+    @classmethod
+    def poll(cls, context):
+        return context.object is not None and context.object.type == "SURFACE"
+
+    def execute(self, context):
+        bpy.ops.riray.spline_groups_sync()
+        for item in context.object.riray.spline_groups:
+            item.group = 0 if self.mode == "JOIN" else -1
+        return {"FINISHED"}
+
+
+CLASSES = (RIRAY_OT_bake, RIRAY_OT_bake_cancel, RIRAY_OT_bake_clear, RIRAY_OT_bake_estimate,
+           RIRAY_OT_export_scene, RIRAY_OT_spline_groups_sync, RIRAY_OT_spline_groups_join)
+
+
+def register():
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+
+
+def unregister():
+    for job in JOBS.values():
+        if job.running:
+            job.cancel()
+    if bpy.app.timers.is_registered(_timer_poll):
+        bpy.app.timers.unregister(_timer_poll)
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)
+

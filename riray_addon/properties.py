@@ -1,0 +1,230 @@
+"""Blender properties of the add-on (saved in the .blend).
+
+scene.riray      the target object, render options (fallback tracing, passes, max events)
+object.riray     bake parameters, cache file, per-spline class groups, bake bookkeeping
+material.riray   "join splines/faces with this material into one class", highlight settings
+world.riray      ambient irradiance for the environment's diffuse shading
+view_layer.riray which extra passes the engine writes
+
+Bake parameters carry the names of ``core.ritree.tree.BakeParams`` where one exists, so
+``bake_params(obj)`` maps straight onto it; the rest (thresholds, extrapolation, cameras) are
+render-time or viewpoint-selection settings the RI-Tree module reads from the same dict.
+"""
+
+
+import bpy
+from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
+                       IntProperty, PointerProperty, StringProperty)
+
+
+def _poll_target(_self, obj) -> bool:
+    return obj.type in {"SURFACE", "MESH", "CURVE", "META"}
+
+
+class RIRAY_PG_spline_group(bpy.types.PropertyGroup):
+    """Class group of one spline (by index): splines with the same group >= 0 form one class."""
+
+    group: IntProperty(name="Class group", default=-1, min=-1, max=999,
+                       description="Splines with the same group number (>= 0) are one "
+                                   "equivalence class; -1: the spline is its own class")
+
+
+class RIRAY_PG_object(bpy.types.PropertyGroup):
+    # ---- tree parameters (names of core BakeParams)
+    viewpoint_depth: IntProperty(name="Viewpoint depth", default=5, min=1, max=9,
+                                 description="Depth of the viewpoint quadtrees on the faces of "
+                                             "the object's bounding box (paper: 5)")
+    direction_depth: IntProperty(name="Direction depth", default=6, min=1, max=10,
+                                 description="Maximum depth of the direction quadtrees "
+                                             "(paper: 6)")
+    min_direction_depth: IntProperty(name="Min direction depth", default=1, min=0, max=10,
+                                     description="Direction trees are split at least this deep")
+    tolerance_deg: FloatProperty(name="Bake tolerance", default=0.5, min=1e-4, max=45.0,
+                                 precision=3, subtype="NONE",
+                                 description="Split a cell while the interpolated output ray at "
+                                             "its midpoint misses the traced one by more than "
+                                             "this angle (degrees)")
+    tolerance_dist: FloatProperty(name="Distance tolerance", default=0.002, min=1e-6, max=0.5,
+                                  precision=4,
+                                  description="... or its origin / first hit by more than this "
+                                              "fraction of the object's box diagonal")
+    search_steps: IntProperty(name="Search steps", default=8, min=0, max=30,
+                              description="Binary-search steps for the extra samples of "
+                                          "two-class cells (paper 4.3)")
+    viewpoint_refine: IntProperty(name="Viewpoint refine", default=2, min=0, max=4,
+                                  description="Camera bakes: extra viewpoint levels where the "
+                                              "cameras' rays lack interpolants")
+    # ---- render-time interpolation rules (core QueryOptions; no re-bake needed)
+    policy: EnumProperty(
+        name="Policy",
+        items=[("RI", "Ray interpolants", "The paper's rules"),
+               ("RAYTREE", "Ray tree", "Bala et al.'s ray-tree rule")],
+        default="RI")
+    use_angle_threshold: BoolProperty(name="Angle threshold", default=True,
+                                      description="Trace when interpolants' output rays are "
+                                                  "further apart than the angle below")
+    angle_deg: FloatProperty(name="Angle", default=20.0, min=0.0, max=180.0,
+                             description="Pairwise angle threshold between interpolants "
+                                         "(degrees)")
+    use_distance_threshold: BoolProperty(name="Distance threshold", default=False,
+                                         description="Trace when interpolants' output origins are "
+                                                     "further apart than the distance below")
+    distance: FloatProperty(name="Distance", default=0.05, min=0.0, max=1.0, precision=4,
+                            description="Pairwise distance threshold, fraction of the object's "
+                                        "box diagonal")
+    use_extrapolation: BoolProperty(name="Extrapolation", default=False,
+                                    description="Allow extrapolating slightly outside the "
+                                                "interpolants' triangle")
+    extrapolation: FloatProperty(name="Extrapolation", default=0.1, min=0.0, max=1.0,
+                                 description="Allowed barycentric distance below 0")
+    # ---- viewpoint selection
+    bake_for_cameras: BoolProperty(name="Bake for scene cameras", default=False,
+                                   description="Only bake the viewpoint cells the scene cameras "
+                                               "look from (over the frame range)")
+    use_frame_range: BoolProperty(name="Frame range", default=True,
+                                  description="Include camera positions over the scene's frame "
+                                              "range (else the current frame only)")
+    # ---- cache
+    cache_file: StringProperty(name="Cache file", subtype="FILE_PATH", default="",
+                               description="RI-Tree cache file; empty: //<blend>.<object>.rit "
+                                           "beside the .blend")
+    baked_fingerprint: StringProperty(name="Baked fingerprint", default="",
+                                      options={"HIDDEN"},
+                                      description="Fingerprint of geometry/transform/material "
+                                                  "at bake time")
+    baked_info: StringProperty(name="Bake info", default="", options={"HIDDEN"})
+    # ---- estimate (filled by riray.estimate)
+    estimate_time_s: FloatProperty(default=-1.0, options={"HIDDEN"})
+    estimate_bytes: FloatProperty(default=-1.0, options={"HIDDEN"})
+    estimate_key: StringProperty(default="", options={"HIDDEN"})
+    # ---- classes
+    spline_groups: CollectionProperty(type=RIRAY_PG_spline_group)
+    spline_groups_index: IntProperty(default=0, options={"HIDDEN"})
+
+
+class RIRAY_PG_material(bpy.types.PropertyGroup):
+    join_class: BoolProperty(name="Join into one class", default=False,
+                             description="All splines / faces of the specular object using this "
+                                         "material form one equivalence class")
+    specular: FloatProperty(name="Highlight", default=0.25, min=0.0, max=10.0,
+                            description="Phong highlight weight of the specular object")
+    shininess: FloatProperty(name="Shininess", default=96.0, min=1.0, max=10000.0,
+                             description="Phong exponent of the highlight")
+
+
+class RIRAY_PG_world(bpy.types.PropertyGroup):
+    ambient: FloatProperty(name="Ambient", default=0.0, min=0.0, soft_max=10.0,
+                           description="Constant ambient irradiance (W/m^2) added to the lights "
+                                       "for the environment's diffuse surfaces")
+
+
+class RIRAY_PG_view_layer(bpy.types.PropertyGroup):
+    use_pass_traced: BoolProperty(name="Traced", default=True,
+                                  description="Mask of the object rays that fell back to tracing")
+    use_pass_angle_error: BoolProperty(name="Angle Error", default=False,
+                                       description="Angle (degrees) between the output ray used "
+                                                   "and the exact one (traces every object ray "
+                                                   "a second time)")
+
+
+class RIRAY_PG_scene(bpy.types.PropertyGroup):
+    target: PointerProperty(name="Object", type=bpy.types.Object, poll=_poll_target,
+                            description="The reflective/refractive object rendered with its "
+                                        "RI-Tree (empty: the active object when baking)")
+    allow_tracing: BoolProperty(name="Trace without tree", default=True,
+                                description="Trace the object exactly when it has no RI-Tree or "
+                                            "the tree is stale (else the render fails)")
+    max_events: IntProperty(name="Max events", default=8, min=1, max=64,
+                            description="Reflections/refractions followed before a ray becomes "
+                                        "the null ray")
+
+
+CLASSES = (RIRAY_PG_spline_group, RIRAY_PG_object, RIRAY_PG_material, RIRAY_PG_world,
+           RIRAY_PG_view_layer, RIRAY_PG_scene)
+OWNERS = ((bpy.types.Scene, RIRAY_PG_scene), (bpy.types.Object, RIRAY_PG_object),
+          (bpy.types.Material, RIRAY_PG_material), (bpy.types.World, RIRAY_PG_world),
+          (bpy.types.ViewLayer, RIRAY_PG_view_layer))
+
+
+def register():
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+    for owner, group in OWNERS:
+        owner.riray = PointerProperty(type=group)
+    bpy.app.handlers.load_post.append(_adopt_on_load)
+
+
+def unregister():
+    if _adopt_on_load in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(_adopt_on_load)
+    for owner, _ in OWNERS:
+        del owner.riray
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)
+
+
+# --------------------------------------------------------------------------- helpers
+# Keys of core.ritree.tree.BakeParams, then the add-on's own bake options.
+BAKE_KEYS = ("viewpoint_depth", "viewpoint_refine", "direction_depth", "min_direction_depth",
+             "tolerance_deg", "tolerance_dist", "search_steps", "bake_for_cameras",
+             "use_frame_range")
+QUERY_KEYS = ("policy", "use_angle_threshold", "angle_deg", "use_distance_threshold", "distance",
+              "use_extrapolation", "extrapolation")
+
+
+def query_options(obj) -> dict:
+    """The render-time rules as core.ritree.query.QueryOptions keyword arguments."""
+    p = obj.riray
+    return {"policy": p.policy.lower(),
+            "angle_deg": float(p.angle_deg) if p.use_angle_threshold else None,
+            "distance": float(p.distance) if p.use_distance_threshold else None,
+            "extrapolation": float(p.extrapolation) if p.use_extrapolation else None}
+
+
+def bake_params(obj) -> dict:
+    """The object's tree parameters as a plain (JSON-able) dict: BakeParams fields, the
+    viewpoint options, and "query" (QueryOptions kwargs, stored with the tree)."""
+    p = obj.riray
+    out = {k: getattr(p, k) for k in BAKE_KEYS}
+    out["query"] = query_options(obj)
+    return out
+
+
+def spline_group(obj, index: int) -> int:
+    groups = obj.riray.spline_groups
+    return groups[index].group if index < len(groups) else -1
+
+
+# --------------------------------------------------------------------------- custom properties
+def adopt_custom_properties() -> int:
+    """Move riray settings that scripts wrote as a custom property ``id["riray"]`` (a dict, e.g.
+    sample_scenes/build_blend.py run without the add-on) into the registered settings. Blender
+    keeps add-on properties apart from custom properties, so they are not picked up by
+    themselves. Returns the number of data-blocks adopted."""
+    n = 0
+    for coll in (bpy.data.scenes, bpy.data.objects, bpy.data.materials, bpy.data.worlds):
+        for idb in coll:
+            if "riray" not in idb.keys():
+                continue
+            group = idb["riray"]
+            if not hasattr(group, "keys"):
+                continue
+            for key in list(group.keys()):
+                value = group[key]
+                try:
+                    if key == "spline_groups":
+                        idb.riray.spline_groups.clear()
+                        for item in value:
+                            idb.riray.spline_groups.add().group = int(item.get("group", -1))
+                    else:
+                        setattr(idb.riray, key, value)
+                except (AttributeError, TypeError, ValueError) as exc:
+                    print(f"riray: {idb.name}: custom property riray.{key} not adopted ({exc})")
+            del idb["riray"]
+            n += 1
+    return n
+
+
+@bpy.app.handlers.persistent
+def _adopt_on_load(*_args):
+    adopt_custom_properties()

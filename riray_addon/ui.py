@@ -1,0 +1,269 @@
+"""Panels: "Bake RI-Tree" (Properties > Object and the 3D View sidebar, tab "RI-Tree"), spline
+classes, material settings, the engine's render / pass / world settings, and a progress bar in
+the status bar while a bake runs."""
+
+from __future__ import annotations
+
+import os
+
+import bpy
+
+from . import cache
+from .engine import ENGINE_ID
+from .jobs import format_bytes, format_duration
+from .operators import JOBS, estimate_key
+from .report import ExportError
+
+TARGET_TYPES = {"SURFACE", "MESH", "CURVE", "META"}
+
+
+def _job_line(layout, job) -> None:
+    eta = job.eta
+    text = f"{100 * job.fraction:.0f}%  ETA {format_duration(eta)}" if eta is not None else \
+        f"{100 * job.fraction:.0f}%  {job.message}"
+    if hasattr(layout, "progress"):
+        layout.progress(factor=job.fraction, type="BAR", text=text)
+    else:
+        layout.label(text=text)
+
+
+def draw_bake_panel(layout, context) -> None:
+    obj = context.object
+    if obj is None or obj.type not in TARGET_TYPES:
+        layout.label(text="Select a NURBS surface, mesh or curve object", icon="INFO")
+        return
+    p = obj.riray
+    col = layout.column(align=True)
+    col.label(text="Tree", icon="OUTLINER_DATA_LIGHTPROBE")
+    col.prop(p, "viewpoint_depth")
+    col.prop(p, "direction_depth")
+    col.prop(p, "min_direction_depth")
+    col = layout.column(align=True)
+    col.prop(p, "tolerance_deg")
+    col.prop(p, "tolerance_dist")
+    col.prop(p, "search_steps")
+    col = layout.column(align=True)
+    col.label(text="Interpolation (render time)")
+    col.prop(p, "policy", text="")
+    for use, val in (("use_angle_threshold", "angle_deg"), ("use_distance_threshold", "distance"),
+                     ("use_extrapolation", "extrapolation")):
+        row = col.row(align=True)
+        row.prop(p, use, text="")
+        sub = row.row(align=True)
+        sub.enabled = getattr(p, use)
+        sub.prop(p, val, text=p.bl_rna.properties[use].name)
+    col = layout.column(align=True)
+    col.prop(p, "bake_for_cameras")
+    sub = col.row()
+    sub.enabled = p.bake_for_cameras
+    sub.prop(p, "use_frame_range")
+    sub = col.row()
+    sub.enabled = p.bake_for_cameras
+    sub.prop(p, "viewpoint_refine")
+    layout.prop(p, "cache_file", text="Cache")
+
+    job = JOBS.get(obj.name)
+    box = layout.box()
+    # -- status of the cache
+    try:
+        status = cache.tree_status(obj, context.evaluated_depsgraph_get())
+    except ExportError as exc:
+        status = {"state": "invalid", "message": str(exc), "doc": None, "path": ""}
+    icon = {"fresh": "CHECKMARK", "stale": "ERROR", "missing": "BLANK1",
+            "invalid": "CANCEL"}[status["state"]]
+    label = {"fresh": "RI-Tree up to date", "stale": "RI-Tree is STALE - re-bake",
+             "missing": "Not baked", "invalid": "Cache file unreadable"}[status["state"]]
+    box.label(text=label, icon=icon)
+    if status["doc"]:
+        meta = status["doc"].get("meta", {})
+        try:
+            size = format_bytes(float(os.path.getsize(status["path"])))
+        except OSError:
+            size = "?"
+        box.label(text=f"{size}, baked in {format_duration(meta.get('bake_s'))} "
+                       f"({status['doc'].get('backend', '?')})")
+    if not bpy.data.filepath and not p.cache_file:
+        box.label(text="Save the .blend to keep the cache beside it", icon="INFO")
+    # -- estimate
+    row = box.row()
+    if p.estimate_time_s >= 0 and p.estimate_key == estimate_key(obj):
+        row.label(text=f"Estimate: {format_duration(p.estimate_time_s)}, "
+                       f"{format_bytes(p.estimate_bytes)}")
+    else:
+        row.label(text="Estimate: -")
+    row.operator("riray.bake_estimate", text="", icon="TIME").object = obj.name
+    # -- bake / cancel / clear
+    if job is not None and job.running:
+        _job_line(box, job)
+        row = box.row()
+        row.label(text=job.message)
+        row.operator("riray.bake_cancel", text="Cancel", icon="CANCEL").object = obj.name
+    else:
+        if job is not None and job.state == "failed":
+            box.label(text=f"Last bake failed: {job.error}", icon="ERROR")
+        row = box.row(align=True)
+        row.scale_y = 1.4
+        op = row.operator("riray.bake", text="Bake", icon="RENDER_STILL")
+        op.object = obj.name
+        op.wait = False
+        row.operator("riray.bake_clear", text="Clear", icon="TRASH").object = obj.name
+
+
+class RIRAY_PT_bake_object(bpy.types.Panel):
+    bl_label = "Bake RI-Tree"
+    bl_idname = "RIRAY_PT_bake_object"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "object"
+
+    @classmethod
+    def poll(cls, context):
+        return context.object is not None and context.object.type in TARGET_TYPES
+
+    def draw(self, context):
+        self.layout.use_property_split = True
+        self.layout.use_property_decorate = False
+        draw_bake_panel(self.layout, context)
+
+
+class RIRAY_PT_bake_view3d(bpy.types.Panel):
+    bl_label = "Bake RI-Tree"
+    bl_idname = "RIRAY_PT_bake_view3d"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "RI-Tree"
+
+    def draw(self, context):
+        draw_bake_panel(self.layout, context)
+
+
+class RIRAY_UL_splines(bpy.types.UIList):
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index):
+        row = layout.row(align=True)
+        row.label(text=f"Spline {index}", icon="SURFACE_DATA")
+        row.prop(item, "group", text="Class")
+
+
+class RIRAY_PT_classes(bpy.types.Panel):
+    bl_label = "Equivalence Classes"
+    bl_idname = "RIRAY_PT_classes"
+    bl_parent_id = "RIRAY_PT_bake_object"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "object"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        obj = context.object
+        layout = self.layout
+        if obj.type != "SURFACE":
+            layout.label(text="Mesh faces: classes split at sharp edges and flat faces")
+            return
+        layout.label(text="Splines with the same class group (>= 0) form one class")
+        if len(obj.riray.spline_groups) != len(obj.data.splines):
+            layout.operator("riray.spline_groups_sync", icon="FILE_REFRESH")
+        layout.template_list("RIRAY_UL_splines", "", obj.riray, "spline_groups", obj.riray,
+                             "spline_groups_index", rows=3)
+        row = layout.row(align=True)
+        row.operator("riray.spline_groups_set", text="Join All").mode = "JOIN"
+        row.operator("riray.spline_groups_set", text="Split All").mode = "SPLIT"
+
+
+class RIRAY_PT_material(bpy.types.Panel):
+    bl_label = "RI-Tree"
+    bl_idname = "RIRAY_PT_material"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "material"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    @classmethod
+    def poll(cls, context):
+        return context.material is not None
+
+    def draw(self, context):
+        m = context.material.riray
+        self.layout.use_property_split = True
+        self.layout.prop(m, "join_class")
+        self.layout.prop(m, "specular")
+        self.layout.prop(m, "shininess")
+
+
+class _EnginePanel:
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    COMPAT_ENGINES = {ENGINE_ID}
+
+    @classmethod
+    def poll(cls, context):
+        return context.engine in cls.COMPAT_ENGINES
+
+
+class RIRAY_PT_render(_EnginePanel, bpy.types.Panel):
+    bl_label = "RI-Tree"
+    bl_idname = "RIRAY_PT_render"
+    bl_context = "render"
+
+    def draw(self, context):
+        s = context.scene.riray
+        layout = self.layout
+        layout.use_property_split = True
+        layout.prop(s, "target")
+        layout.prop(s, "allow_tracing")
+        layout.prop(s, "max_events")
+        from . import engine
+        st = engine.LAST_RENDER.get("stats")
+        if st:
+            layout.label(text=f"Last frame {st['frame']}: traced "
+                              f"{100 * st['traced_fraction']:.1f}% of {st['object_pixels']} "
+                              f"object pixels, {st['render_time_s']:.2f} s")
+
+
+class RIRAY_PT_passes(_EnginePanel, bpy.types.Panel):
+    bl_label = "RI-Tree Passes"
+    bl_idname = "RIRAY_PT_passes"
+    bl_context = "view_layer"
+
+    def draw(self, context):
+        v = context.view_layer.riray
+        self.layout.prop(v, "use_pass_traced")
+        self.layout.prop(v, "use_pass_angle_error")
+
+
+class RIRAY_PT_world(_EnginePanel, bpy.types.Panel):
+    bl_label = "RI-Tree Environment"
+    bl_idname = "RIRAY_PT_world"
+    bl_context = "world"
+
+    @classmethod
+    def poll(cls, context):
+        return super().poll(context) and context.world is not None
+
+    def draw(self, context):
+        self.layout.prop(context.world.riray, "ambient")
+
+
+def draw_statusbar(self, context):
+    for job in JOBS.values():
+        if job.running:
+            row = self.layout.row(align=True)
+            row.label(text=f"RI-Tree {job.object_name}")
+            _job_line(row, job)
+            row.operator("riray.bake_cancel", text="", icon="CANCEL").object = job.object_name
+
+
+CLASSES = (RIRAY_PT_bake_object, RIRAY_PT_bake_view3d, RIRAY_UL_splines, RIRAY_PT_classes,
+           RIRAY_PT_material, RIRAY_PT_render, RIRAY_PT_passes, RIRAY_PT_world)
+
+
+def register():
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.STATUSBAR_HT_header.append(draw_statusbar)
+
+
+def unregister():
+    bpy.types.STATUSBAR_HT_header.remove(draw_statusbar)
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)
+

@@ -1,0 +1,112 @@
+"""Baking through the operator: a small bake in the worker process, the cache beside the .blend
+(relative // path) reloaded with the file, staleness after edits, cancelling (the previous
+cache survives), the estimate, and the render engine's reaction to a stale tree."""
+
+import math
+import os
+import time
+
+import pytest
+
+
+def _setup(bl, tmp_path):
+    bpy = bl.bpy
+    bpy.ops.surface.primitive_nurbs_surface_sphere_add(radius=0.5)
+    obj = bpy.context.active_object
+    bpy.ops.object.camera_add(location=(0, -4, 0.5), rotation=(math.radians(85), 0, 0))
+    bpy.context.scene.camera = bpy.context.active_object
+    bpy.context.view_layer.objects.active = obj
+    blend = tmp_path / "bake_test.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    return obj, blend
+
+
+def test_bake_cancel_reload_stale(bl, tmp_path):
+    bpy = bl.bpy
+    ops = bl.operators
+    obj, blend = _setup(bl, tmp_path)
+    # -- a small blocking bake with options given to the operator
+    res = bpy.ops.riray.bake(object=obj.name, viewpoint_depth=1, direction_depth=2,
+                             tolerance_deg=1.0, bake_for_cameras=True)
+    assert res == {"FINISHED"}
+    assert obj.riray.viewpoint_depth == 1 and obj.riray.tolerance_deg == 1.0
+    path = bl.cache.cache_path(obj)
+    assert path == str(tmp_path / "bake_test.SurfSphere.rit")        # beside the .blend
+    assert bl.cache.default_relpath(obj).startswith("//")
+    doc = bl.backend.read_header(path)
+    assert doc["meta"]["object"] == obj.name and doc["meta"]["params"]["viewpoint_depth"] == 1
+    assert len(doc["meta"]["params"]["camera_positions"]) == 1      # a still camera, once
+    dg = bpy.context.evaluated_depsgraph_get()
+    assert bl.cache.tree_status(obj, dg)["state"] == "fresh"
+    assert obj.riray.baked_fingerprint == doc["meta"]["fingerprint"]
+    stat0 = os.stat(path)
+
+    # -- cancel a long bake: the previous cache survives untouched
+    res = bpy.ops.riray.bake(object=obj.name, viewpoint_depth=6, direction_depth=6, wait=False)
+    assert res == {"FINISHED"}
+    job = ops.JOBS[obj.name]
+    assert job.running
+    t0 = time.time()
+    while job.poll() == "running" and job.fraction <= 0.02 and time.time() - t0 < 60:
+        time.sleep(0.05)
+    assert job.running and 0.0 < job.fraction < 1.0
+    assert job.eta is not None
+    assert bpy.ops.riray.bake_cancel(object=obj.name) == {"FINISHED"}
+    t0 = time.time()
+    while ops.poll_jobs() and time.time() - t0 < 30:
+        time.sleep(0.05)
+    assert job.state == "cancelled"
+    st = os.stat(path)
+    assert (st.st_mtime_ns, st.st_size) == (stat0.st_mtime_ns, stat0.st_size)
+    assert not [f for f in os.listdir(tmp_path) if ".tmp" in f]
+    assert not os.path.exists(job.job_dir)
+
+    # -- reload with the file: still fresh
+    bpy.ops.wm.save_mainfile()
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    obj = bpy.data.objects["SurfSphere"]
+    dg = bpy.context.evaluated_depsgraph_get()
+    assert bl.cache.tree_status(obj, dg)["state"] == "fresh"
+
+    # -- a transform, geometry or material change makes it stale
+    obj.location.x += 0.1
+    bpy.context.view_layer.update()
+    assert bl.cache.tree_status(obj, bpy.context.evaluated_depsgraph_get())["state"] == "stale"
+    obj.location.x -= 0.1
+    bpy.context.view_layer.update()
+    assert bl.cache.tree_status(obj, bpy.context.evaluated_depsgraph_get())["state"] == "fresh"
+    obj.data.splines[0].points[0].co.z += 0.05
+    obj.data.update_tag()
+    bpy.context.view_layer.update()
+    assert bl.cache.tree_status(obj, bpy.context.evaluated_depsgraph_get())["state"] == "stale"
+
+    # -- the engine tells the user and traces exactly (or refuses when asked to)
+    scene = bpy.context.scene
+    scene.render.engine = "RIRAY"
+    scene.render.resolution_x = scene.render.resolution_y = 16
+    scene.render.filepath = str(tmp_path / "stale.png")
+    scene.riray.allow_tracing = False
+    with pytest.raises(RuntimeError, match="stale"):
+        bpy.ops.render.render(write_still=True)
+
+    # -- clear removes the cache
+    assert bpy.ops.riray.bake_clear(object=obj.name) == {"FINISHED"}
+    assert not os.path.exists(path)
+    assert bl.cache.tree_status(obj, bpy.context.evaluated_depsgraph_get())["state"] == "missing"
+
+
+def test_estimate_and_failed_bake(bl, tmp_path):
+    bpy = bl.bpy
+    obj, _ = _setup(bl, tmp_path)
+    assert bpy.ops.riray.bake_estimate(object=obj.name) == {"FINISHED"}
+    assert obj.riray.estimate_time_s > 0 and obj.riray.estimate_bytes > 0
+    assert obj.riray.estimate_key == bl.operators.estimate_key(obj)
+    # a worker that dies comes back as an operator error; the (absent) cache stays absent
+    os.environ["RIRAY_PYTHON"] = "/bin/false"
+    try:
+        with pytest.raises(RuntimeError, match="failed: the worker exited with code 1"):
+            bpy.ops.riray.bake(object=obj.name, viewpoint_depth=1, direction_depth=1)
+    finally:
+        del os.environ["RIRAY_PYTHON"]
+    assert bl.operators.JOBS[obj.name].state == "failed"
+    assert not os.path.exists(bl.cache.cache_path(obj))
