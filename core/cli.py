@@ -235,6 +235,25 @@ def cmd_bench_exact(args):
     return 0
 
 
+def cmd_bench(args):
+    from .bench.ritree_bench import config_from_args, run
+    cfg = config_from_args(
+        quick=args.quick, out=args.out, scenes=args.scenes, views=args.views, size=args.size,
+        repeats=args.repeats, workers=args.workers, viewpoint_depth=args.viewpoint_depth,
+        direction_depth=args.direction_depth, tolerance=args.tolerance, angle=args.angle,
+        sweep_scenes=args.sweep_scenes, sweep_repeats=args.sweep_repeats,
+        sweeps=False if args.no_sweeps else None, plots=False if args.no_plots else None,
+        keep_trees=args.keep_trees or None)
+    res = run(cfg, quiet=args.quiet)
+    print(f"{res['command']}  ({res['machine']['cpu_count']} cores, "
+          f"{res['machine']['processor']}, numpy {res['machine']['numpy']}; "
+          f"{res['elapsed_s'] / 60:.1f} min)")
+    print((Path(args.out) / "tables.md").read_text())
+    for p in res["written"]:
+        print(f"wrote {p}")
+    return 0
+
+
 def build_parser():
     ap = argparse.ArgumentParser(prog="riray", description=__doc__)
     ap.add_argument("--version", action="version", version=f"riray {__version__}")
@@ -299,6 +318,45 @@ def build_parser():
                    "(default: bench_exact.json)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(fn=cmd_bench_exact)
+
+    p = sub.add_parser("bench", help="RI-Tree benchmark: the paper's tables, parameter sweeps, "
+                       "plots", description="Bakes each sample scene's view and measures exact, "
+                       "interpolated (without and with the angle threshold) and raytree-policy "
+                       "renders interleaved in the same processes (median of --repeats), then "
+                       "sweeps depths, bake tolerance, thresholds and extrapolation. Writes "
+                       "tables.csv, sweeps.csv, results.json, tables.md, sweeps.md and PNG plots "
+                       "into --out (docs/benchmarks.md). Unset options take the full preset's "
+                       "values, or --quick's.")
+    p.add_argument("--quick", action="store_true",
+                   help="smoke-check preset: 2 scenes x 2 views at 64 x 64, shallow trees, small "
+                   "sweeps on glass_sphere (under two minutes on two cores)")
+    p.add_argument("--out", default="bench_out", help="output folder (default: bench_out)")
+    p.add_argument("--scenes", nargs="+", choices=SAMPLES, default=None, metavar="NAME",
+                   help="table scenes (default: all five)")
+    p.add_argument("--views", nargs="+", choices=("far", "close", "zoom"), default=None,
+                   metavar="VIEW", help="table views (default: far close zoom)")
+    p.add_argument("--size", type=int, default=None, help="image side in pixels (default 300)")
+    p.add_argument("--repeats", type=int, default=None,
+                   help="passes per interpolated configuration, median taken (default 3)")
+    p.add_argument("--viewpoint-depth", type=int, default=None,
+                   help="viewpoint depth of the table trees and the sweeps' base tree (default 4)")
+    p.add_argument("--direction-depth", type=int, default=None,
+                   help="direction depth of the table trees and the sweeps' base tree (default 5)")
+    p.add_argument("--tolerance", type=float, default=None, metavar="DEG",
+                   help="bake tolerance of the table trees (default 0.5)")
+    p.add_argument("--angle", type=float, default=None, metavar="DEG",
+                   help="angle threshold of the 'with threshold' rows (default 20)")
+    p.add_argument("--sweep-scenes", nargs="+", choices=SAMPLES, default=None, metavar="NAME",
+                   help="scenes swept (close view; default: glass_sphere vase_glass)")
+    p.add_argument("--sweep-repeats", type=int, default=None,
+                   help="passes per sweep point (default 1)")
+    p.add_argument("--no-sweeps", action="store_true", help="tables only")
+    p.add_argument("--no-plots", action="store_true", help="no PNG plots (no matplotlib needed)")
+    p.add_argument("--keep-trees", action="store_true", help="keep the baked .rit files in "
+                   "OUT/trees")
+    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.set_defaults(fn=cmd_bench)
 
     p = sub.add_parser("validate", help="load and validate a scene file")
     p.add_argument("scene")

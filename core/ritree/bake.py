@@ -25,13 +25,14 @@ import numpy as np
 from ..parallel import map_chunks
 from .cache import fingerprint
 from .dircube import CUBE, DOMAIN, N_SLOTS, UV_AXES, cube_to_dir
-from .interp import FAIL, angle_between, cell_weights
+from .interp import FAIL, UNIT_CORNERS, angle_between, cell_weights
 from .quadtree import CORNERS, Forest
 from .region import Region
 from .tree import BakeParams, RITree, Samples
 
 TRACE_CHUNK = 8192          # rays per worker task (bounds worker memory, keeps progress fluid)
-SLOT_PROBE = 17             # probe rays per slot side when testing whether a slot sees the object
+SLOT_MIN_DEPTH = 1e-9      # object-box parts nearer than this (x its extent) along a slot's
+                            # axis are ignored by the slot test (they project to infinity)
 
 
 class BakeCancelled(Exception):
@@ -123,6 +124,8 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
             break
         passes += 1
     tree = baker.tree()
+    # what the caller renders with is exactly what a cache file stores
+    tree.samples = tree.samples.packed(tree.box_lo, tree.box_hi)
     tree.meta.update({"fingerprint": fingerprint(st.scene.object, st.scene.render.max_events),
                       "region": (region or Region()).describe(), "refine_passes": passes,
                       "bake_seconds": round(time.perf_counter() - t0, 3)})
@@ -275,7 +278,9 @@ class _Baker:
             else:
                 u, v = self.uv_of(tr, mid)
                 ms = self._trace(tr, u, v, level, f"direction level {level}")
-                split = _needs_split(self.samples, dirf.corner[nodes], ms, self.class_of,
+                scale = dirf.cube_scale(nodes, tr, np.broadcast_to(UNIT_CORNERS[:, 0], (len(tr), 4)),
+                                        np.broadcast_to(UNIT_CORNERS[:, 1], (len(tr), 4)))
+                split = _needs_split(self.samples, dirf.corner[nodes], scale, ms, self.class_of,
                                      tol_ang, tol_d)
                 # the traced midpoint becomes a corner of the children: keep it
                 keep = np.flatnonzero(split)
@@ -381,8 +386,10 @@ def _cls(samples: Samples, ids, class_of):
     return np.where(p >= 0, class_of[np.maximum(p, 0)], -1)
 
 
-def _needs_split(samples, corner, ms: Samples, class_of, tol_ang, tol_d):
-    """Split test of cells with corner sample ids ``corner`` (N, 4) and traced midpoints ``ms``."""
+def _needs_split(samples, corner, scale, ms: Samples, class_of, tol_ang, tol_d):
+    """Split test of cells with corner sample ids ``corner`` (N, 4) and traced midpoints ``ms``;
+    ``scale`` (N, 4) weighs the corners' output directions as the renderer does
+    (perspective-correct: the length of each corner's direction-cube point)."""
     cc = _cls(samples, corner, class_of)
     cm = np.where(ms.patch >= 0, class_of[np.maximum(ms.patch, 0)], -1)
     cn = samples.null[corner]
@@ -396,7 +403,7 @@ def _needs_split(samples, corner, ms: Samples, class_of, tol_ang, tol_d):
         i = np.flatnonzero(smooth)
         wi = w[i][:, :, None]
         ci = corner[i]
-        od = np.einsum("nkc,nk->nc", samples.out_d[ci].astype(np.float64), w[i])
+        od = np.einsum("nkc,nk->nc", samples.out_d[ci].astype(np.float64), w[i] * scale[i])
         od /= np.maximum(np.linalg.norm(od, axis=1), 1e-300)[:, None]
         nm = (samples.normal[ci].astype(np.float64) * wi).sum(1)
         nm /= np.maximum(np.linalg.norm(nm, axis=1), 1e-300)[:, None]
@@ -411,26 +418,38 @@ def _needs_split(samples, corner, ms: Samples, class_of, tol_ang, tol_d):
 
 
 def _slots_seeing(vp_pos, vface, lo, hi):
-    """(V, 5) whether any of a SLOT_PROBE^2 grid of directions of each hemicube slot reaches the
-    object's (unpadded) box from the viewpoint."""
-    g = (np.arange(SLOT_PROBE) + 0.5) / SLOT_PROBE
-    gu, gv = np.meshgrid(g, g, indexing="ij")
-    gu, gv = gu.ravel(), gv.ravel()
+    """(V, 5) whether the object's box [lo, hi] meets each hemicube slot's frustum from each
+    viewpoint (conservative). The slot's cube face has axis b: the part of the box in front of
+    the viewpoint along b is again a box; its corners projected onto the cube face bound its
+    image, which must overlap the slot's domain."""
     V = len(vp_pos)
     out = np.zeros((V, N_SLOTS), bool)
+    corners = np.array([[(i >> k) & 1 for k in range(3)] for i in range(8)], bool)   # (8, 3)
     for s in range(N_SLOTS):
-        dom = DOMAIN[vface, s]                                            # (V, 4)
-        u = dom[:, None, 0] + (dom[:, None, 1] - dom[:, None, 0]) * gu
-        v = dom[:, None, 2] + (dom[:, None, 3] - dom[:, None, 2]) * gv
-        d = cube_to_dir(np.repeat(CUBE[vface, s], len(gu)), u.ravel(), v.ravel())
-        o = np.repeat(vp_pos, len(gu), axis=0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t1, t2 = (lo - o) / d, (hi - o) / d
-        zero = d == 0
-        ins = (o >= lo) & (o <= hi)
-        tn = np.where(zero, np.where(ins, -np.inf, np.inf), np.minimum(t1, t2)).max(1)
-        tf = np.where(zero, np.where(ins, np.inf, -np.inf), np.maximum(t1, t2)).min(1)
-        out[:, s] = (np.maximum(tn, 0) <= tf).reshape(V, -1).any(1)
+        cube = CUBE[vface, s]                                              # (V,)
+        b = cube // 2
+        sign = np.where(cube % 2 == 1, 1.0, -1.0)
+        rows = np.arange(V)
+        p_b = vp_pos[rows, b]
+        # clip the box to depth = sign (x_b - p_b) >= SLOT_MIN_DEPTH * extent
+        ext = np.max(hi - lo) + 1e-300
+        lo_c = np.tile(lo, (V, 1))
+        hi_c = np.tile(hi, (V, 1))
+        front = p_b + sign * SLOT_MIN_DEPTH * ext
+        lo_c[rows, b] = np.where(sign > 0, np.maximum(lo[b], front), lo[b])
+        hi_c[rows, b] = np.where(sign > 0, hi[b], np.minimum(hi[b], front))
+        ok = lo_c[rows, b] <= hi_c[rows, b]
+        pts = np.where(corners[None], hi_c[:, None, :], lo_c[:, None, :])   # (V, 8, 3)
+        rel = pts - vp_pos[:, None, :]
+        depth = sign[:, None] * rel[rows[:, None], np.arange(8)[None], b[:, None]]
+        ua = np.array([p[0] for p in UV_AXES])[b]
+        va = np.array([p[1] for p in UV_AXES])[b]
+        depth = np.where(ok[:, None], depth, 1.0)          # rows without a front part: unused
+        u = rel[rows[:, None], np.arange(8)[None], ua[:, None]] / depth
+        v = rel[rows[:, None], np.arange(8)[None], va[:, None]] / depth
+        dom = DOMAIN[vface, s]
+        out[:, s] = ok & (u.max(1) >= dom[:, 0]) & (u.min(1) <= dom[:, 1]) \
+            & (v.max(1) >= dom[:, 2]) & (v.min(1) <= dom[:, 3])
     return out
 
 
@@ -492,6 +511,8 @@ def _extras(dirf, leaves, samples, class_of, trace, uv_of, tree_of, M, steps, re
     lo_s = corner[rows, e_from].copy()
     hi_s = corner[rows, e_to].copy()
     trr = np.repeat(tr, 2)
+    # bracket ends: corner sample ids (>= 0) or probes, coded -1 - (index into probes)
+    probes = Samples.empty()
     for step in range(steps):
         report(step / max(steps, 1))
         f = 0.5 * (lo_f + hi_f)
@@ -499,12 +520,18 @@ def _extras(dirf, leaves, samples, class_of, trace, uv_of, tree_of, M, steps, re
         u, v = uv_of(trr, g.reshape(-1, 2))
         s = trace(trr, u, v)
         c = np.where(s.null, -2, np.where(s.patch >= 0, class_of[np.maximum(s.patch, 0)], -1)).reshape(E, 2)
-        ids = samples.extend(s).reshape(E, 2)
+        ids = (-1 - probes.extend(s)).reshape(E, 2)
         same = c == c_from
         lo_f = np.where(same, f, lo_f)
         lo_s = np.where(same, ids, lo_s)
         hi_f = np.where(same, hi_f, f)
         hi_s = np.where(same, hi_s, ids)
+    # keep only the probes that ended as bracket ends
+    ends = np.concatenate([lo_s, hi_s], axis=1)
+    used, inv = np.unique(-1 - ends[ends < 0], return_inverse=True)
+    new = samples.extend(_take(probes, used))
+    ends[ends < 0] = new[inv.ravel()]
+    lo_s, hi_s = ends[:, :2], ends[:, 2:]
     # local cell coordinates of the bracket ends
     a = CORNERS[e_from].astype(np.float64)                             # (E, 2, 2)
     b = CORNERS[e_to].astype(np.float64)

@@ -111,6 +111,16 @@ class Forest:
         ly = np.clip(fy * scale - self.iy[nd], 0.0, 1.0)
         return np.where(ok, nd, -1), lx, ly
 
+    def cube_scale(self, nodes, trees, lx, ly):
+        """|(1, u, v)| at cell-local points (lx, ly) of ``nodes`` of ``trees`` (direction trees:
+        the length of the direction-cube point, the weight that makes interpolated directions
+        perspective-correct). nodes/trees (...), lx/ly (..., k) -> (..., k)."""
+        d = self.domain[trees]
+        sc = np.exp2(-self.level[nodes].astype(np.float64))[..., None]
+        u = d[..., 0, None] + (d[..., 1] - d[..., 0])[..., None] * (self.ix[nodes][..., None] + lx) * sc
+        v = d[..., 2, None] + (d[..., 3] - d[..., 2])[..., None] * (self.iy[nodes][..., None] + ly) * sc
+        return np.sqrt(1.0 + u * u + v * v)
+
     def corner_coords(self, nodes, max_level):
         """(len(nodes), 4, 2) integer corner coordinates on the tree's 2^max_level grid."""
         sh = (max_level - self.level[nodes].astype(np.int64))[:, None]

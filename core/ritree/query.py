@@ -137,13 +137,16 @@ class TreeQuery:
         ok &= np.all(ids >= 0, axis=(1, 2))
         ans[q[~ok]] = OUTSIDE
         keep = np.flatnonzero(ok)
-        q, alpha, beta, leaf, lx, ly, ids = (a[keep] for a in (q, alpha, beta, leaf, lx, ly, ids))
+        q, alpha, beta, leaf, lx, ly, ids, trees = (
+            a[keep] for a in (q, alpha, beta, leaf, lx, ly, ids, trees))
         n_exact = 0
         if len(q):
             if opt.policy == "raytree":
-                n_exact = self._raytree(o, d, tmax, q, alpha, beta, lx, ly, ids, res, ans, why)
+                n_exact = self._raytree(o, d, tmax, q, alpha, beta, leaf, trees, lx, ly, ids,
+                                        res, ans, why)
             else:
-                n_exact = self._ri(o, d, tmax, q, alpha, beta, leaf, lx, ly, ids, res, ans, why)
+                n_exact = self._ri(o, d, tmax, q, alpha, beta, leaf, trees, lx, ly, ids, res,
+                                   ans, why)
         # exact tracing where the tree could not answer
         tr = np.flatnonzero((ans == TRACED) | (ans == OUTSIDE))
         if len(tr):
@@ -163,7 +166,7 @@ class TreeQuery:
                           tree=np.zeros(n, np.uint32))
 
     # ------------------------------------------------------------------ the paper's policy
-    def _ri(self, o, d, tmax, q, alpha, beta, leaf, lx, ly, ids, res, ans, why):
+    def _ri(self, o, d, tmax, q, alpha, beta, leaf, trees, lx, ly, ids, res, ans, why):
         tree, opt = self.tree, self.opt
         m = len(q)
         flat = ids.reshape(m, 16)
@@ -190,8 +193,8 @@ class TreeQuery:
         go = np.flatnonzero(~many & ~miss)
         if len(go) == 0:
             return n_exact
-        q, alpha, beta, leaf, lx, ly, flat, cls, pc = (
-            a[go] for a in (q, alpha, beta, leaf, lx, ly, flat, cls, pcls))
+        q, alpha, beta, leaf, trees, lx, ly, flat, cls, pc = (
+            a[go] for a in (q, alpha, beta, leaf, trees, lx, ly, flat, cls, pcls))
         m = len(q)
         usable = ((cls == pc[:, None]) & ~tree.samples.null[flat]).reshape(m, 4, 4)
         # direction level: per DQ weights over its corners (plus extra samples)
@@ -200,13 +203,15 @@ class TreeQuery:
         sid[:, :, :4] = flat.reshape(m, 4, 4)
         dq_st = np.zeros((m, 4), np.int8)
         is_extra = np.zeros((m, 4), bool)
+        lpos = np.zeros((m, 4, 6, 2))                           # cell-local sample positions
+        lpos[:, :, :4] = UNIT_CORNERS
         for k in range(4):
             wk, sk = cell_weights(usable[:, k], lx[:, k], ly[:, k], opt.extrapolation)
             w[:, k, :4] = wk
             dq_st[:, k] = sk
             fail = np.flatnonzero(sk == FAIL)
             if len(fail):
-                self._extra(fail, k, leaf, lx, ly, usable, pc, w, sid, dq_st, is_extra)
+                self._extra(fail, k, leaf, lx, ly, usable, pc, w, sid, dq_st, is_extra, lpos)
         # viewpoint level
         dq_ok = dq_st != FAIL
         W, qst = cell_weights(dq_ok, alpha, beta, opt.extrapolation)
@@ -225,6 +230,10 @@ class TreeQuery:
             thr = pairwise_within(vals[:, :, 3:6], vals[:, :, 0:3], used,
                                   None if opt.angle_deg is None else np.radians(opt.angle_deg),
                                   None if opt.distance is None else opt.distance * tree.diag)
+        # perspective-correct directions: weight each output direction by the length of its
+        # sample's direction-cube point (exact for affine ray maps such as a plane mirror)
+        scale = tree.dir_forest.cube_scale(leaf, trees, lpos[..., 0], lpos[..., 1]).reshape(m, 24)
+        vals[:, :, 3:6] *= scale[:, :, None]
         out = np.einsum("nk,nkc->nc", weights, vals)
         od, nm = out[:, 3:6], out[:, 9:12]
         lod, lnm = np.linalg.norm(od, axis=1), np.linalg.norm(nm, axis=1)
@@ -240,7 +249,7 @@ class TreeQuery:
                    nm[g] / lnm[g, None], pc[g], self._patch_of(sid[g], weights[g]))
         return n_exact
 
-    def _extra(self, fail, k, leaf, lx, ly, usable, pc, w, sid, dq_st, is_extra):
+    def _extra(self, fail, k, leaf, lx, ly, usable, pc, w, sid, dq_st, is_extra, lpos):
         """Direction-level interpolation from the extra samples of one/two-interpolant leaves
         (paper 4.3, Figure 12) for DQ ``k`` of rows ``fail``."""
         tree = self.tree
@@ -310,11 +319,12 @@ class TreeQuery:
         np.add.at(wk, (np.arange(len(good))[:, None], slots), lam[good])
         w[gr, k] = wk
         sid[gr, k, 4:6] = extra_ids[good]
+        lpos[gr, k, 4:6] = slot_pos[good, 4:6]
         dq_st[gr, k] = np.where(st[good] == EXTRAPOLATED, EXTRAPOLATED, EXTRA)
         is_extra[gr, k] = True
 
     # ------------------------------------------------------------------ Bala et al.'s policy
-    def _raytree(self, o, d, tmax, q, alpha, beta, lx, ly, ids, res, ans, why):
+    def _raytree(self, o, d, tmax, q, alpha, beta, leaf, trees, lx, ly, ids, res, ans, why):
         tree = self.tree
         m = len(q)
         flat = ids.reshape(m, 16)
@@ -335,7 +345,12 @@ class TreeQuery:
             wq = np.stack([(1 - alpha[g]) * (1 - beta[g]), alpha[g] * (1 - beta[g]),
                            (1 - alpha[g]) * beta[g], alpha[g] * beta[g]], 1)
             weights = (wq[:, :, None] * wdq).reshape(len(g), 16)
-            out = np.einsum("nk,nkc->nc", weights, tree.samples.gather(flat[g]))
+            vals = tree.samples.gather(flat[g])
+            scale = tree.dir_forest.cube_scale(leaf[g], trees[g], np.broadcast_to(
+                UNIT_CORNERS[:, 0], (len(g), 4, 4)), np.broadcast_to(UNIT_CORNERS[:, 1],
+                                                                   (len(g), 4, 4)))
+            vals[:, :, 3:6] *= scale.reshape(len(g), 16)[:, :, None]
+            out = np.einsum("nk,nkc->nc", weights, vals)
             od, nm = out[:, 3:6], out[:, 9:12]
             ans[q[g]] = FULL
             self._fill(res, ans, q[g], o, d, tmax, out[:, 0:3],

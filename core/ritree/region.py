@@ -41,7 +41,7 @@ class Region:
             return {"kind": "full"}
         return {"kind": "cameras", "faces": [int(f) for f in np.flatnonzero(self.cells.any((1, 2)))],
                 "cells": int(self.cells.sum()), "cells_total": int(self.cells.size),
-                "direction_trees": int(len(self.tree_keys)),
+                "direction_trees": None if self.tree_keys is None else int(len(self.tree_keys)),
                 "camera_rays": int(len(self.rays[0])) if self.rays is not None else 0}
 
 

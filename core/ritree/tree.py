@@ -114,7 +114,8 @@ class Samples:
 
 @dataclass
 class PackedSamples:
-    """Samples as stored in a cache file (possibly memory-mapped); decoded on gather."""
+    """Samples as stored in a cache file (possibly memory-mapped): decoded on gather, or whole
+    through the out_o / out_d / point / normal properties."""
 
     out_o_q: np.ndarray     # (S, 3) uint16 point codes in the box [lo, hi]
     out_d_q: np.ndarray     # (S, 2) int16 octahedral codes (zero vector reserved)
@@ -130,6 +131,22 @@ class PackedSamples:
 
     def __len__(self) -> int:
         return len(self.patch)
+
+    @property
+    def out_o(self) -> np.ndarray:
+        return decode_points(self.out_o_q, self.lo, self.hi)
+
+    @property
+    def out_d(self) -> np.ndarray:
+        return decode_unit_vectors(self.out_d_q)
+
+    @property
+    def point(self) -> np.ndarray:
+        return decode_points(self.point_q, self.lo, self.hi)
+
+    @property
+    def normal(self) -> np.ndarray:
+        return decode_unit_vectors(self.normal_q)
 
     def gather(self, ids) -> np.ndarray:
         """(..., 12) float64 values of sample ids; each distinct sample is decoded once."""

@@ -1,0 +1,116 @@
+"""`riray bench` (docs/benchmarks.md): the --quick preset at a tiny size writes the CSV, JSON,
+Markdown and PNG outputs, and they agree with each other and with what interpolation means
+(never more rays traced than the exact render, errors only where rays were interpolated)."""
+
+import csv
+import json
+import math
+
+import pytest
+
+from riray.bench.plots import pareto_front
+from riray.bench.ritree_bench import ROWS, BenchConfig, config_from_args
+from riray.cli import main
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory):
+    """One quick run: 2 scenes x the close view at 20 x 20, one worker (about 15 s)."""
+    pytest.importorskip("matplotlib")
+    out = tmp_path_factory.mktemp("bench")
+    rc = main(["bench", "--quick", "--size", "20", "--views", "close", "--workers", "1",
+               "--quiet", "--out", str(out)])
+    assert rc == 0
+    return out
+
+
+def _csv(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_outputs_exist(bench):
+    for name in ("tables.csv", "sweeps.csv", "results.json", "tables.md", "sweeps.md"):
+        assert (bench / name).stat().st_size > 0, name
+    for name in ("pareto.png", "bake_depth.png", "amortized.png"):
+        assert (bench / name).read_bytes()[:8] == PNG_MAGIC, name
+    assert (bench / "images" / "glass_sphere_close_exact.png").read_bytes()[:8] == PNG_MAGIC
+    assert not (bench / "trees").exists()          # trees are dropped unless --keep-trees
+
+
+def test_tables_consistent(bench):
+    rows = _csv(bench / "tables.csv")
+    res = json.loads((bench / "results.json").read_text())
+    assert len(rows) == len(res["tables"]) == 2 * len(ROWS)     # 2 scenes x 1 view x 4 rows
+    assert res["machine"]["cpu_count"] >= 1 and res["command"].startswith("riray bench --quick")
+    by = {}
+    for r in rows:
+        by.setdefault((r["scene"], r["view"]), {})[r["row"]] = r
+    assert set(by) == {("glass_sphere", "close"), ("vase_mirror", "close")}
+    for view, rs in by.items():
+        assert set(rs) == set(ROWS), view
+        ex = rs["exact"]
+        assert int(ex["rays_traced"]) == int(ex["object_rays"]) > 0
+        assert int(ex["samples_gathered"]) == 0 and int(ex["newton_iters"]) > 0
+        for kind in ("interp", "interp_angle", "raytree"):
+            r = rs[kind]
+            assert int(r["object_rays"]) == int(ex["object_rays"])      # the same camera rays
+            assert int(r["rays_traced"]) <= int(ex["rays_traced"])
+            # (Newton iterations may exceed exact's: two-class rays get an exact first-hit test)
+            assert int(r["pairs"]) >= 0 and int(r["exact_first_hits"]) >= 0
+            assert int(r["samples_gathered"]) >= 16 * (int(r["object_rays"]) - int(r["rays_traced"]))
+            assert 0.0 <= float(r["traced_fraction"]) <= 1.0
+            assert float(r["object_cpu_s"]) > 0 and float(r["total_cpu_s"]) >= float(r["object_cpu_s"])
+            if r["angle_mean_deg"]:
+                assert 0 <= float(r["angle_mean_deg"]) <= float(r["angle_p99_deg"]) \
+                    <= float(r["angle_max_deg"]) + 1e-9
+        # the angle threshold only ever adds traced rays to the no-threshold row
+        assert int(rs["interp_angle"]["rays_traced"]) >= int(rs["interp"]["rays_traced"])
+    # the JSON and the CSV hold the same numbers
+    for j, r in zip(res["tables"], rows):
+        assert (j["scene"], j["view"], j["row"]) == (r["scene"], r["view"], r["row"])
+        assert j["rays_traced"] == int(r["rays_traced"]) and j["pairs"] == int(r["pairs"])
+        assert math.isclose(j["object_cpu_s"], float(r["object_cpu_s"]))
+    md = (bench / "tables.md").read_text()
+    assert "| close | ray traced |" in md and "break-even" in md
+    for a in res["amortization"]:
+        be = a["break_even_frames"]
+        saved = a["exact_frame_cpu_s"] - a["interp_frame_cpu_s"]
+        assert (be is None) == (saved <= 0)
+        if be is not None:
+            assert be * saved >= a["bake_cpu_s"] - 1e-9
+
+
+def test_sweeps_consistent(bench):
+    rows = _csv(bench / "sweeps.csv")
+    q = BenchConfig(**config_from_args(quick=True).__dict__)
+    kinds = [r["sweep"] for r in rows]
+    assert kinds.count("depth") == len(q.vp_depths) * len(q.dir_depths)
+    assert kinds.count("tolerance") == len(q.tolerances)
+    assert kinds.count("angle") == len(q.angles)
+    assert kinds.count("distance") == len(q.distances)
+    assert kinds.count("extrapolation") == len(q.extrapolations)
+    for r in rows:
+        assert float(r["bake_s"]) > 0 and int(r["cache_bytes"]) > 0
+        assert 0.0 <= float(r["traced_fraction"]) <= 1.0
+    # deeper direction trees never hold fewer samples (same viewpoint depth, same tolerance)
+    depth = [r for r in rows if r["sweep"] == "depth"]
+    for vp in q.vp_depths:
+        s = [int(r["tree_samples"]) for r in depth if int(r["viewpoint_depth"]) == vp]
+        assert s == sorted(s)
+    # without any threshold fewer rays are traced than with the tightest angle threshold
+    ang = {r["angle"]: int(r["rays_traced"]) for r in rows if r["sweep"] == "angle"}
+    assert ang[""] <= min(v for k, v in ang.items() if k)
+
+
+def test_pareto_front():
+    pts = [(1.0, 5.0), (2.0, 3.0), (2.5, 4.0), (3.0, 1.0), (0.5, 9.0), (3.0, 2.0)]
+    assert pareto_front(pts) == [4, 0, 1, 3]
+
+
+def test_bad_options(capsys):
+    assert main(["bench", "--size", "1", "--out", "unused"]) == 2
+    assert "size" in capsys.readouterr().err
+    assert main(["bench", "--quick", "--repeats", "0", "--out", "unused"]) == 2
