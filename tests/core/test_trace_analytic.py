@@ -250,3 +250,52 @@ def test_silhouette_hit_or_miss_matches_analytic(sphere_tracer):
     sel = h.hit & clear
     assert np.abs(h.t[sel] - t_true[sel]).max() < 1e-7
     assert np.all(np.isfinite(h.normal)) and np.all(np.isfinite(h.point))
+
+
+def test_rays_at_seams_and_piece_edges(sphere_tracer):
+    """Rays aimed exactly at the cyclic seam (u = 0 = 1), at the Bezier piece boundaries
+    (u = 1/4, 1/2, 3/4) and along the poles' meridians hit the sphere where the analytic
+    sphere says, with radial normals."""
+    v = np.linspace(0.02, 0.98, 25)
+    pts = []
+    for u in (0.0, 0.25, 0.5, 0.75, 1.0):
+        phi = 2 * np.pi * u
+        theta = np.pi * (v - 0.5)
+        pts.append(np.stack([np.cos(theta) * np.cos(phi), np.cos(theta) * np.sin(phi),
+                             np.sin(theta)], 1))
+    n = np.concatenate(pts)                       # target unit normals on the sphere
+    target = C + R * n
+    d = -n + 0.3 * np.cross(n, [0.0, 0.0, 1.0] + 0 * n)      # oblique but front-facing
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    o = target - 3 * R * d
+    h = sphere_tracer.intersect(o, d)
+    t_true = analytic_hit(o, d, np.zeros(len(o), bool))
+    assert h.hit.all()
+    assert np.abs(h.t - t_true).max() < 1e-9
+    assert angle(h.normal, (h.point - C) / R).max() < 1e-9
+
+
+def test_dielectric_splits_with_exact_fresnel(sphere_tracer):
+    """Dielectric: the reflected ray mirrors the incident one about the normal, the
+    transmitted chain equals glass, and the weight is the exact unpolarized Fresnel
+    reflectance (normal incidence: ((n - 1) / (n + 1))^2)."""
+    ior = 1.5
+    rng = np.random.default_rng(7)
+    o, d = rays_at_sphere(400, rng)
+    die = trace_object(sphere_tracer, ObjectMaterial(kind="dielectric", ior=ior), o, d)
+    gla = trace_object(sphere_tracer, ObjectMaterial(kind="glass", ior=ior), o, d)
+    assert angle(die.out_dir, gla.out_dir).max() < 1e-12
+    nrm = die.normal
+    cos_i = -np.einsum("ij,ij->i", d, nrm)
+    assert angle(die.refl_dir, d + 2 * cos_i[:, None] * nrm).max() < 1e-12
+    # independent Fresnel: s and p amplitudes from Snell's law
+    sin_t = np.sqrt(1 - cos_i ** 2) / ior
+    cos_t = np.sqrt(1 - sin_t ** 2)
+    rs = (cos_i - ior * cos_t) / (cos_i + ior * cos_t)
+    rp = (ior * cos_i - cos_t) / (ior * cos_i + cos_t)
+    assert np.abs(die.fresnel - 0.5 * (rs ** 2 + rp ** 2)).max() < 1e-12
+    head_on = trace_object(sphere_tracer, ObjectMaterial(kind="dielectric", ior=ior),
+                           C + [[0, 0, 5.0]], [[0, 0, -1.0]])
+    assert abs(head_on.fresnel[0] - ((ior - 1) / (ior + 1)) ** 2) < 1e-12
+    # mirror and glass never compute Fresnel
+    assert np.all(gla.fresnel == 0) and np.all(gla.refl_dir == 0)
