@@ -162,3 +162,34 @@ def test_render_errors_are_reported(bl, tmp_path):
     with pytest.raises(RuntimeError, match="no camera"):
         bpy.ops.render.render(write_still=True)
     assert txt.type == "FONT"
+
+
+def test_still_through_baked_tree_matches_core(bl, tmp_path):
+    """Bake the object's RI-Tree through the operator, render F12 through it: the pixels equal
+    core's own interpolated render (render_tree) of the exported scene with the same tree and
+    rules, most object pixels are interpolated, and the Traced pass marks exactly the rest."""
+    from riray.render.interpolated import render_tree
+    from riray.ritree import tree as ritree
+    from riray.ritree.query import QueryOptions
+
+    bpy = bl.bpy
+    obj = build_scene(bl, tmp_path)
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "tree_still.blend"))
+    assert bpy.ops.riray.bake(object=obj.name, viewpoint_depth=3, direction_depth=4,
+                              bake_for_cameras=True) == {"FINISHED"}
+    path = bl.cache.cache_path(obj)
+    # a coarse tree on a strongly curved mirror: the 20 deg pairwise angle rule would trace
+    # nearly everything; the rules are render-time options (no re-bake)
+    obj.riray.use_angle_threshold = False
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    got = load_exr(bpy, tmp_path / "still.exr")
+    last = bl.engine.LAST_RENDER
+    st = last["stats"]
+    s = bl.export.export_scene(bpy.context.evaluated_depsgraph_get(), obj, bl.report.Report(),
+                               cameras="ACTIVE")
+    opts = QueryOptions(**bl.properties.query_options(obj))
+    ref = render_tree(s, ritree.load(path), options=opts, reference=False, workers=1)
+    assert st["mode"] != "exact" and st["object_pixels"] > 50
+    assert 0.0 < st["traced_fraction"] < 0.9
+    assert np.abs(got - ref.image).max() < 1e-5
+    assert np.array_equal(last["traced"].reshape(H, W) > 0, ref.masks["traced"])
