@@ -21,6 +21,7 @@ import numpy as np
 from ..geometry.tessellate import tessellate
 from ..parallel import map_chunks
 from ..scene.model import Mesh, Scene
+from ..trace.boxes import slab_intervals
 from ..trace.meshes import MeshSet
 from ..trace.objectfn import SECONDARY_T_MIN_REL, ObjectRays, trace_object
 from ..trace.patches import PatchTracer
@@ -60,17 +61,9 @@ class SceneTracer:
 
 def slab_entry(o, d, lo, hi):
     """Entry distance (>= 0) of rays into the box [lo, hi]; inf where they miss it."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        t1 = (lo - o) * inv
-        t2 = (hi - o) * inv
-    # a zero direction component: inside the slab -> (-inf, inf), outside -> empty
-    zero = d == 0.0
-    ins = (o >= lo) & (o <= hi)
-    tnear_c = np.where(zero, np.where(ins, -np.inf, np.inf), np.minimum(t1, t2))
-    tfar_c = np.where(zero, np.where(ins, np.inf, -np.inf), np.maximum(t1, t2))
-    tn = np.maximum(tnear_c.max(axis=1), 0.0)
-    tf = tfar_c.min(axis=1)
+    tnear, tfar = slab_intervals(o, d, lo, hi)
+    tn = np.maximum(tnear.max(axis=1), 0.0)
+    tf = tfar.min(axis=1)
     return np.where(tn <= tf, tn, np.inf)
 
 

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..trace.boxes import slab_intervals
 from ..trace.objectfn import ObjectRays, fresnel_dielectric, reflect
 from .dircube import SLOT, UV_AXES, dir_to_cube
 from .interp import (BILINEAR, EXTRA, EXTRAPOLATED, FAIL, TRIANGLE, UNIT_CORNERS,
@@ -65,12 +66,8 @@ def entry_points(tree, o, d):
     """Entry distance, face and face coordinates of rays into the tree's padded box.
     Returns (t_in, face, x, y, inside): inside marks rays starting inside the box."""
     lo, hi = tree.box_lo, tree.box_hi
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1, t2 = (lo - o) / d, (hi - o) / d
-    zero = d == 0.0
+    tnear, tfar = slab_intervals(o, d, lo, hi)
     ins = (o >= lo) & (o <= hi)
-    tnear = np.where(zero, np.where(ins, -np.inf, np.inf), np.minimum(t1, t2))
-    tfar = np.where(zero, np.where(ins, np.inf, -np.inf), np.maximum(t1, t2))
     axis = np.argmax(tnear, axis=1)
     rows = np.arange(len(o))
     tn = tnear[rows, axis]

@@ -26,6 +26,7 @@ import numpy as np
 from ..geometry import bezier as bz
 from ..geometry.nurbs import normals as nurbs_normals
 from ..scene.model import Mesh, SpecularObject
+from .boxes import slab_intervals
 from .bvh import BVH
 from .meshes import MeshSet
 
@@ -493,12 +494,5 @@ def _hull_meets(ctrl, n1, c1, n2, c2):
 
 def _ray_box(o, d, lo, hi, tmin, tmax):
     """Whether segments [tmin, tmax] of rays meet boxes [lo, hi] (closed slabs, zero-safe)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        t1 = (lo - o) * inv
-        t2 = (hi - o) * inv
-    zero = d == 0.0
-    ins = (o >= lo) & (o <= hi)
-    tn = np.where(zero, np.where(ins, -np.inf, np.inf), np.minimum(t1, t2)).max(axis=1)
-    tf = np.where(zero, np.where(ins, np.inf, -np.inf), np.maximum(t1, t2)).min(axis=1)
-    return (np.maximum(tn, tmin) <= np.minimum(tf, tmax))
+    tnear, tfar = slab_intervals(o, d, lo, hi)
+    return np.maximum(tnear.max(axis=1), tmin) <= np.minimum(tfar.min(axis=1), tmax)
