@@ -138,3 +138,20 @@ def transform(surf: NurbsSurface, matrix) -> NurbsSurface:
                         np.array(surf.knots_v, dtype=np.float64),
                         surf.points @ m[:3, :3].T + m[:3, 3],
                         np.array(surf.weights, dtype=np.float64))
+
+
+def box_faces(lo, hi) -> list[NurbsSurface]:
+    """The six faces of the axis-aligned box [lo, hi] as bilinear patches, ordered
+    -Z, +Z, -Y, +Y, -X, +X (orientation: as built, not necessarily outward)."""
+    x0, y0, z0 = _vec3(lo, "lo")
+    x1, y1, z1 = _vec3(hi, "hi")
+    P = np.array
+    corners = [
+        (P([x0, y0, z0]), P([x1, y0, z0]), P([x0, y1, z0]), P([x1, y1, z0])),
+        (P([x0, y0, z1]), P([x1, y0, z1]), P([x0, y1, z1]), P([x1, y1, z1])),
+        (P([x0, y0, z0]), P([x1, y0, z0]), P([x0, y0, z1]), P([x1, y0, z1])),
+        (P([x0, y1, z0]), P([x1, y1, z0]), P([x0, y1, z1]), P([x1, y1, z1])),
+        (P([x0, y0, z0]), P([x0, y1, z0]), P([x0, y0, z1]), P([x0, y1, z1])),
+        (P([x1, y0, z0]), P([x1, y1, z0]), P([x1, y0, z1]), P([x1, y1, z1])),
+    ]
+    return [bilinear(*c) for c in corners]

@@ -21,7 +21,7 @@ import re
 import numpy as np
 import pytest
 
-from riray.geometry.primitives import bilinear, sphere
+from riray.geometry.primitives import bilinear, box_faces, sphere
 from riray.render.exact import SceneTracer
 from riray.ritree import bake as bake_mod
 from riray.ritree import cache
@@ -81,17 +81,7 @@ def face_cells(D, face, lo, hi):
 
 def glass_box(lo, hi, ior=1.5):
     """A closed box of six bilinear patches, one class per face (creases)."""
-    x0, y0, z0 = lo
-    x1, y1, z1 = hi
-    faces = [
-        (P(x0, y0, z0), P(x1, y0, z0), P(x0, y1, z0), P(x1, y1, z0)),
-        (P(x0, y0, z1), P(x1, y0, z1), P(x0, y1, z1), P(x1, y1, z1)),
-        (P(x0, y0, z0), P(x1, y0, z0), P(x0, y0, z1), P(x1, y0, z1)),
-        (P(x0, y1, z0), P(x1, y1, z0), P(x0, y1, z1), P(x1, y1, z1)),
-        (P(x0, y0, z0), P(x0, y1, z0), P(x0, y0, z1), P(x0, y1, z1)),
-        (P(x1, y0, z0), P(x1, y1, z0), P(x1, y0, z1), P(x1, y1, z1)),
-    ]
-    patches = [Patch(f"f{i}", i, surface=bilinear(*f)) for i, f in enumerate(faces)]
+    patches = [Patch(f"f{i}", i, surface=f) for i, f in enumerate(box_faces(lo, hi))]
     return SpecularObject("slab", patches, ObjectMaterial(kind="glass", ior=ior))
 
 

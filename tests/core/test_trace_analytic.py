@@ -4,7 +4,7 @@ slab of bilinear patches vs the textbook lateral shift, reversibility of refract
 import numpy as np
 import pytest
 
-from riray.geometry.primitives import bilinear, sphere
+from riray.geometry.primitives import bilinear, box_faces, sphere
 from riray.scene.model import ObjectMaterial, Patch, SpecularObject
 from riray.trace.objectfn import trace_object
 from riray.trace.patches import PatchTracer
@@ -167,18 +167,7 @@ def test_trapped_ray_inside_glass_is_null(sphere_tracer):
 
 def glass_box(lo, hi, ior=1.5):
     """A closed box of six bilinear patches."""
-    x0, y0, z0 = lo
-    x1, y1, z1 = hi
-    P = lambda x, y, z: np.array([x, y, z], float)  # noqa: E731
-    faces = [
-        (P(x0, y0, z0), P(x1, y0, z0), P(x0, y1, z0), P(x1, y1, z0)),
-        (P(x0, y0, z1), P(x1, y0, z1), P(x0, y1, z1), P(x1, y1, z1)),
-        (P(x0, y0, z0), P(x1, y0, z0), P(x0, y0, z1), P(x1, y0, z1)),
-        (P(x0, y1, z0), P(x1, y1, z0), P(x0, y1, z1), P(x1, y1, z1)),
-        (P(x0, y0, z0), P(x0, y1, z0), P(x0, y0, z1), P(x0, y1, z1)),
-        (P(x1, y0, z0), P(x1, y1, z0), P(x1, y0, z1), P(x1, y1, z1)),
-    ]
-    patches = [Patch(f"f{i}", i, surface=bilinear(*f)) for i, f in enumerate(faces)]
+    patches = [Patch(f"f{i}", i, surface=f) for i, f in enumerate(box_faces(lo, hi))]
     return SpecularObject("slab", patches, ObjectMaterial(kind="glass", ior=ior))
 
 
