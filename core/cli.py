@@ -37,7 +37,8 @@ def _query_options(args):
     from .ritree.query import QueryOptions
     return QueryOptions(policy=args.policy, extrapolation=args.extrapolation,
                         angle_deg=None if args.angle < 0 else args.angle,
-                        distance=None if args.distance < 0 else args.distance).validate()
+                        distance=None if args.distance < 0 else args.distance,
+                        threshold_on=args.threshold_on).validate()
 
 
 def _tree_opts(p):
@@ -50,6 +51,9 @@ def _tree_opts(p):
     p.add_argument("--distance", type=float, default=-1.0, metavar="REL",
                    help="pairwise output-origin distance threshold, relative to the object's "
                    "box diagonal (-1: off, the default)")
+    p.add_argument("--threshold-on", choices=("samples", "intermediate"), default="samples",
+                   help="apply the thresholds among all interpolated samples (the paper, the "
+                   "default) or among the four viewpoints' intermediate rays")
 
 
 def _bake_opts(p):

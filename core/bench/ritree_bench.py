@@ -92,9 +92,9 @@ class BenchConfig:
     vp_depths: tuple = (3, 4, 5)
     dir_depths: tuple = (4, 5, 6)
     tolerances: tuple = (0.25, 0.5, 1.0, 2.0)
-    angles: tuple = (None, 45.0, 20.0, 10.0, 5.0, 2.0)
-    distances: tuple = (None, 0.2, 0.1, 0.05, 0.02)
-    extrapolations: tuple = (None, 0.05, 0.1, 0.25, 0.5)
+    angles: tuple = (None, 45.0, 20.0, 10.0, 5.0)
+    distances: tuple = (None, 0.1, 0.05, 0.02)
+    extrapolations: tuple = (None, 0.1, 0.25, 0.5)
     plots: bool = True
     images: bool = True
     keep_trees: bool = False

@@ -51,10 +51,15 @@ class QueryOptions:
     extrapolation: float | None = None  # allowed barycentric distance below 0 (None: off)
     angle_deg: float | None = 20.0     # pairwise angle threshold between interpolants
     distance: float | None = None      # pairwise distance threshold between output origins
+    threshold_on: str = "samples"      # compare all interpolated samples (the paper), or the
+                                       # four viewpoints' "intermediate" rays f*(R_VP)
 
     def validate(self) -> "QueryOptions":
         if self.policy not in ("ri", "raytree"):
             raise ValueError(f"policy must be 'ri' or 'raytree', got {self.policy!r}")
+        if self.threshold_on not in ("intermediate", "samples"):
+            raise ValueError("threshold_on must be 'intermediate' or 'samples', "
+                             f"got {self.threshold_on!r}")
         for name in ("extrapolation", "angle_deg", "distance"):
             val = getattr(self, name)
             if val is not None and not (np.isfinite(val) and val >= 0):
@@ -213,25 +218,33 @@ class TreeQuery:
         dq_ok = dq_st != FAIL
         W, qst = cell_weights(dq_ok, alpha, beta, opt.extrapolation)
         few = qst == FAIL
-        weights = W[:, :, None] * w                                     # (m, 4, 6)
-        # interpolants for the pairwise thresholds: the usable corners of every DQ the QNode
-        # level uses (the samples of the chosen triangle where extras answered)
-        member = np.concatenate([usable, np.zeros((m, 4, 2), bool)], axis=2)
-        member = np.where(is_extra[:, :, None], w != 0, member)
-        used = ((dq_ok & (qst != FAIL)[:, None])[:, :, None] & member).reshape(m, 24)
-        sid = sid.reshape(m, 24)
-        weights = weights.reshape(m, 24)
-        vals = tree.samples.gather(sid)                                 # (m, 24, 12)
-        thr = np.ones(m, bool)
-        if opt.angle_deg is not None or opt.distance is not None:
-            thr = pairwise_within(vals[:, :, 3:6], vals[:, :, 0:3], used,
-                                  None if opt.angle_deg is None else np.radians(opt.angle_deg),
-                                  None if opt.distance is None else opt.distance * tree.diag)
+        vals = tree.samples.gather(sid)                                 # (m, 4, 6, 12)
         # perspective-correct directions: weight each output direction by the length of its
         # sample's direction-cube point (exact for affine ray maps such as a plane mirror)
-        scale = tree.dir_forest.cube_scale(leaf, trees, lpos[..., 0], lpos[..., 1]).reshape(m, 24)
-        vals[:, :, 3:6] *= scale[:, :, None]
-        out = np.einsum("nk,nkc->nc", weights, vals)
+        vals_s = vals.copy()
+        vals_s[..., 3:6] *= tree.dir_forest.cube_scale(leaf, trees, lpos[..., 0],
+                                                       lpos[..., 1])[..., None]
+        inter = np.einsum("nkj,nkjc->nkc", w, vals_s)                   # f*(R_VP) per DQ
+        used_dq = dq_ok & (qst != FAIL)[:, None]
+        thr = np.ones(m, bool)
+        if opt.angle_deg is not None or opt.distance is not None:
+            ang = None if opt.angle_deg is None else np.radians(opt.angle_deg)
+            dist = None if opt.distance is None else opt.distance * tree.diag
+            if opt.threshold_on == "samples":
+                # every usable sample of every DQ used (the chosen triangle's for extras)
+                member = np.concatenate([usable, np.zeros((m, 4, 2), bool)], axis=2)
+                member = np.where(is_extra[:, :, None], w != 0, member)
+                used = (used_dq[:, :, None] & member).reshape(m, 24)
+                v24 = vals.reshape(m, 24, 12)
+                thr = pairwise_within(v24[:, :, 3:6], v24[:, :, 0:3], used, ang, dist)
+            else:
+                # the intermediate rays f*(R_VP): parallel query rays from the four viewpoints
+                idir = inter[:, :, 3:6] / np.maximum(
+                    np.linalg.norm(inter[:, :, 3:6], axis=2), 1e-300)[:, :, None]
+                thr = pairwise_within(idir, inter[:, :, 0:3], used_dq, ang, dist)
+        sid = sid.reshape(m, 24)
+        weights = (W[:, :, None] * w).reshape(m, 24)
+        out = np.einsum("nk,nkc->nc", W, inter)
         od, nm = out[:, 3:6], out[:, 9:12]
         lod, lnm = np.linalg.norm(od, axis=1), np.linalg.norm(nm, axis=1)
         blend = (lod > MIN_BLEND_NORM) & (lnm > MIN_BLEND_NORM)

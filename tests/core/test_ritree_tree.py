@@ -30,7 +30,8 @@ from riray.ritree.dircube import CUBE, DOMAIN, N_SLOTS, SLOT, UV_AXES, cube_to_d
 from riray.ritree.interp import angle_between
 from riray.ritree.quadtree import Forest
 from riray.ritree.query import (EXTRAPOLATED_S, FULL, MISS, OUTSIDE, REDUCED, TRACED,
-                                WHY_RAYTREE, QueryOptions, TreeQuery, entry_points)
+                                WHY_RAYTREE, WHY_THRESHOLD, QueryOptions, TreeQuery,
+                                entry_points)
 from riray.ritree.region import Region
 
 # Interpolation exactness on affine ray maps (mirror, slab) is checked without the pairwise
@@ -941,3 +942,20 @@ def test_loaded_tree_answers_like_baked_tree_bit_identically(tmp_path, sphere_st
     back = save_load(tree, tmp_path / "a.rit", mmap=False)
     o, d, tmax = cache_queries(tree)
     same_answers(tree, back, sphere_st, o, d, tmax)
+
+
+def test_threshold_on_intermediate_rays_vs_samples(mirror):
+    """A plane mirror maps parallel rays to parallel rays: the four viewpoints' intermediate
+    rays f*(R_VP) of a query share one direction, so a near-zero angle threshold on them still
+    interpolates, while the same threshold over all samples (different directions within a
+    direction cell) interpolates nothing."""
+    st, tree = mirror
+    o, d = mirror_queries(tree, 5000, 4)
+    tiny = np.degrees(1e-6)
+    _, a_int, w_int, _ = TreeQuery(tree, st, QueryOptions(angle_deg=tiny,
+                                                          threshold_on="intermediate"))(o, d)
+    _, a_smp, w_smp, _ = TreeQuery(tree, st, QueryOptions(angle_deg=tiny))(o, d)
+    assert interpolated(a_int).sum() > 500
+    assert interpolated(a_smp).sum() == 0 and np.any(w_smp == WHY_THRESHOLD)
+    with pytest.raises(ValueError, match="threshold_on"):
+        QueryOptions(threshold_on="pixels").validate()
