@@ -240,7 +240,12 @@ def cmd_bench_exact(args):
 
 
 def cmd_bench(args):
-    from .bench.ritree_bench import config_from_args, run
+    from .bench.ritree_bench import config_from_args, replot, run
+    if args.replot:
+        res = replot(args.out)
+        for p in res["written"]:
+            print(f"wrote {p}")
+        return 0
     cfg = config_from_args(
         quick=args.quick, out=args.out, scenes=args.scenes, views=args.views, size=args.size,
         repeats=args.repeats, workers=args.workers, viewpoint_depth=args.viewpoint_depth,
@@ -358,6 +363,8 @@ def build_parser():
     p.add_argument("--no-plots", action="store_true", help="no PNG plots (no matplotlib needed)")
     p.add_argument("--keep-trees", action="store_true", help="keep the baked .rit files in "
                    "OUT/trees")
+    p.add_argument("--replot", action="store_true", help="measure nothing: re-make the tables, "
+                   "CSV and plots from OUT/results.json")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(fn=cmd_bench)
