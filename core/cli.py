@@ -38,7 +38,8 @@ def _query_options(args):
     return QueryOptions(policy=args.policy, extrapolation=args.extrapolation,
                         angle_deg=None if args.angle < 0 else args.angle,
                         distance=None if args.distance < 0 else args.distance,
-                        threshold_on=args.threshold_on).validate()
+                        threshold_on=args.threshold_on,
+                        null_interp=args.null_rays == "interpolate").validate()
 
 
 def _tree_opts(p):
@@ -54,6 +55,9 @@ def _tree_opts(p):
     p.add_argument("--threshold-on", choices=("samples", "intermediate"), default="samples",
                    help="apply the thresholds among all interpolated samples (the paper, the "
                    "default) or among the four viewpoints' intermediate rays")
+    p.add_argument("--null-rays", choices=("interpolate", "trace"), default="interpolate",
+                   help="a ray whose interpolants are all null (trapped) is answered null "
+                   "(interpolate, the default) or traced (trace, the paper)")
 
 
 def _bake_opts(p):

@@ -77,6 +77,9 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                                                 "interpolants' triangle")
     extrapolation: FloatProperty(name="Extrapolation", default=0.1, min=0.0, max=1.0,
                                  description="Allowed barycentric distance below 0")
+    use_null_interp: BoolProperty(name="Interpolate null rays", default=True,
+                                  description="A ray whose interpolants are all trapped "
+                                              "(null) is answered null instead of traced")
     # ---- viewpoint selection
     bake_for_cameras: BoolProperty(name="Bake for scene cameras", default=False,
                                    description="Only bake the viewpoint cells the scene cameras "
@@ -169,7 +172,7 @@ BAKE_KEYS = ("viewpoint_depth", "viewpoint_refine", "direction_depth", "min_dire
              "tolerance_deg", "tolerance_dist", "search_steps", "bake_for_cameras",
              "use_frame_range")
 QUERY_KEYS = ("policy", "use_angle_threshold", "angle_deg", "use_distance_threshold", "distance",
-              "use_extrapolation", "extrapolation")
+              "use_extrapolation", "extrapolation", "use_null_interp")
 
 
 def query_options(obj) -> dict:
@@ -178,7 +181,8 @@ def query_options(obj) -> dict:
     return {"policy": p.policy.lower(),
             "angle_deg": float(p.angle_deg) if p.use_angle_threshold else None,
             "distance": float(p.distance) if p.use_distance_threshold else None,
-            "extrapolation": float(p.extrapolation) if p.use_extrapolation else None}
+            "extrapolation": float(p.extrapolation) if p.use_extrapolation else None,
+            "null_interp": bool(p.use_null_interp)}
 
 
 def bake_params(obj) -> dict:

@@ -52,6 +52,7 @@ def draw_bake_panel(layout, context) -> None:
         sub = row.row(align=True)
         sub.enabled = getattr(p, use)
         sub.prop(p, val, text=p.bl_rna.properties[use].name)
+    col.prop(p, "use_null_interp")
     col = layout.column(align=True)
     col.prop(p, "bake_for_cameras")
     sub = col.row()

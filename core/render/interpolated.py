@@ -19,7 +19,8 @@ import numpy as np
 
 from ..parallel import map_chunks
 from ..ritree.interp import angle_between
-from ..ritree.query import ANSWER_NAMES, FULL, EXTRAPOLATED_S, OUTSIDE, TRACED, WHY_NAMES, TreeQuery
+from ..ritree.query import (ANSWER_NAMES, EXTRAPOLATED_S, FULL, NULL_S, OUTSIDE, TRACED, WHY_NAMES,
+                           TreeQuery)
 from .camera import camera_rays
 from .exact import PIXEL_CHUNK, RenderResult, SceneTracer, render_pixels
 
@@ -71,6 +72,7 @@ def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
                 & ~rx.null
             err[cand[interp]] = np.degrees(angle_between(ri.out_dir[interp], rx.out_dir[interp]))
             out["hit_disagree"] = int(np.sum(ri.hit != rx.hit))
+            out["null_disagree"] = int(np.sum((box["ans"] == NULL_S) & ~rx.null))
         return col, col_x, answers, whys, err, out, hit_i
 
     t0 = time.perf_counter()
@@ -112,6 +114,7 @@ def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
             "angle_error_deg_p99": round(float(np.percentile(e, 99)), 5) if len(e) else None,
             "angle_error_deg_max": round(float(e.max()), 5) if len(e) else None,
             "hit_disagreements": sum(p[5]["hit_disagree"] for p in parts),
+            "null_answers_not_null": sum(p[5]["null_disagree"] for p in parts),
             "psnr_db": round(psnr(img, exact), 3),
             "max_pixel_diff": round(float(np.abs(_clip(img) - _clip(exact)).max()), 5)})
         stats["exact_counts"] = sx

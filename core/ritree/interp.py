@@ -1,7 +1,8 @@
 """Interpolation weights shared by the bake (midpoint test) and the renderer (paper 4.1, 4.2,
 4.3, 5.1, 5.3): bilinear over four usable corners, barycentric over three, barycentric over the
 extra samples of one-/two-interpolant cells, the extrapolation threshold, and the pairwise
-angle/distance thresholds. Everything works on whole arrays of queries.
+angle/distance thresholds (far pairs make interpolants unusable: an outlier is dropped).
+Everything works on whole arrays of queries.
 
 Cell-local coordinates (lx, ly) are in [0, 1]^2; corners are ordered (0,0), (1,0), (0,1), (1,1).
 """
@@ -21,6 +22,8 @@ INSIDE_SLACK = 1e-12
 # Triangles whose doubled area (cell units, cell = 1 x 1) is below this are degenerate
 # (collinear extra samples, an extra sample on its corner): no weights, the ray is traced.
 DEGENERATE_AREA = 1e-9
+# Rows per block of the pairwise threshold test (bounds its (rows, K, K, 3) differences).
+PAIR_CHUNK = 2048
 
 
 def bilinear_weights(lx, ly) -> np.ndarray:
@@ -116,33 +119,51 @@ def angle_between(a, b):
     return 2.0 * np.arctan2(np.linalg.norm(a - b, axis=-1), np.linalg.norm(a + b, axis=-1))
 
 
-def pairwise_within(dirs, origins, used, max_angle=None, max_dist=None):
-    """Paper 5.3: True where every pair of used interpolants (N, K) has output directions
-    within ``max_angle`` radians and output origins within ``max_dist`` (None: no limit).
+def far_pairs(dirs, origins, used, max_angle=None, max_dist=None) -> np.ndarray:
+    """Paper 5.3: (N, K, K) True for the pairs of used interpolants (N, K) whose output
+    directions are more than ``max_angle`` radians apart or whose output origins are more than
+    ``max_dist`` apart (None: no limit).
 
-    Directions are compared by chord length (a metric equivalent to the angle). Rows are
-    settled by their centroid c first: every point within limit/2 of c passes (triangle
-    inequality); a point farther than the limit from c fails (c is a convex combination, so
-    that point is farther than the limit from some other point); the rest get the exact
-    pairwise test."""
-    ok = np.ones(len(used), bool)
+    Directions are compared by chord length (a metric equivalent to the angle). A row whose
+    used points all lie within limit/2 of their centroid has no far pair (triangle
+    inequality) and skips the pairwise test, so smooth rows cost O(K)."""
+    used = np.asarray(used, bool)
+    n, k = used.shape
+    far = np.zeros((n, k, k), bool)
     for pts, lim in ((dirs, None if max_angle is None else 2.0 * np.sin(min(max_angle, np.pi) / 2)),
                      (origins, max_dist)):
         if lim is None:
             continue
-        ok &= _within(pts, used, lim)
-    return ok
+        cnt = np.maximum(used.sum(axis=1), 1)
+        c = np.einsum("nk,nkc->nc", used, pts) / cnt[:, None]
+        r = np.where(used, np.linalg.norm(pts - c[:, None, :], axis=2), 0.0).max(axis=1)
+        unsure = np.flatnonzero(r > 0.5 * lim)
+        for a in range(0, len(unsure), PAIR_CHUNK):
+            rows = unsure[a:a + PAIR_CHUNK]
+            p, u = pts[rows], used[rows]
+            diff = p[:, :, None, :] - p[:, None, :, :]
+            far[rows] |= (np.einsum("nklc,nklc->nkl", diff, diff) > lim * lim) \
+                & u[:, :, None] & u[:, None, :]
+    return far
 
 
-def _within(pts, used, lim):
-    cnt = np.maximum(used.sum(axis=1), 1)
-    c = np.einsum("nk,nkc->nc", used, pts) / cnt[:, None]
-    r = np.where(used, np.linalg.norm(pts - c[:, None, :], axis=2), 0.0).max(axis=1)
-    ok = r <= 0.5 * lim
-    unsure = np.flatnonzero(~ok & (r <= lim))
-    if len(unsure):
-        p, u = pts[unsure], used[unsure]
-        diff = p[:, :, None, :] - p[:, None, :, :]
-        far = np.einsum("nklc,nklc->nkl", diff, diff) > lim * lim
-        ok[unsure] = ~np.any(far & u[:, :, None] & u[:, None, :], axis=(1, 2))
-    return ok
+def drop_outlier(far, used, pos, q):
+    """Paper 5.3: interpolants in a far pair are not usable. Of the used interpolants (N, K)
+    the one in most far pairs is dropped - on a tie the one farthest from the query point q
+    (N, 2) (positions ``pos`` (K, 2) or (N, K, 2)), whose loss leaves the query inside the
+    triangle of the other three corners of a cell. A row still holding a far pair after that
+    one drop loses all its interpolants. Returns (usable (N, K), changed (N,) rows that had a
+    far pair)."""
+    f = far & used[:, :, None] & used[:, None, :]
+    deg = f.sum(axis=2)
+    bad = deg.any(axis=1)
+    if not bad.any():
+        return used, bad
+    dist = np.linalg.norm(np.asarray(pos) - q[:, None, :], axis=-1)
+    score = np.where(used, deg * (1.0 + dist.max()) + dist, -1.0)
+    out = used.copy()
+    rows = np.flatnonzero(bad)
+    out[rows, np.argmax(score[rows], axis=1)] = False
+    left = np.any(f & out[:, :, None] & out[:, None, :], axis=(1, 2))
+    out[left] = False
+    return out, bad

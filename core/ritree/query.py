@@ -8,7 +8,10 @@ the four direction trees give four leaf cells (DQs), 16 samples in all. Then
   are those of that class that are not null; each DQ interpolates bilinearly (4 usable),
   barycentrically (3) or from its extra samples (one/two-interpolant cells); the QNode level
   combines the DQs the same way; extrapolation and the pairwise angle/distance thresholds
-  apply; anything short of three interpolants at either level is traced exactly.
+  apply; anything short of three interpolants at either level is traced exactly - except
+  where counting the null samples of the class as usable gives an interpolation whose
+  interpolants are all null: that ray is answered null (``null_interp``, on by default; the
+  paper traces it), so the trapped regions of a refractor are not traced ray by ray.
 - policy "raytree" (Bala et al., for comparison): interpolate only when all 16 samples have
   identical ray trees; trace otherwise.
 Interpolated first-hit points and normals feed local illumination; a dielectric's reflected
@@ -25,7 +28,7 @@ from ..trace.boxes import slab_intervals
 from ..trace.objectfn import ObjectRays, fresnel_dielectric, reflect
 from .dircube import SLOT, UV_AXES, dir_to_cube
 from .interp import (BILINEAR, EXTRA, EXTRAPOLATED, FAIL, TRIANGLE, UNIT_CORNERS,
-                     cell_weights, pairwise_within, pick_triangle)
+                     cell_weights, drop_outlier, far_pairs, pick_triangle)
 
 QUERY_CHUNK = 16384            # rays per query batch (bounds the (N, 16, 12) gathers)
 # Interpolated unit vectors shorter than this before normalization (opposed samples) are not
@@ -33,9 +36,11 @@ QUERY_CHUNK = 16384            # rays per query batch (bounds the (N, 16, 12) ga
 MIN_BLEND_NORM = 1e-3
 
 # Answer codes: how each ray was answered.
-MISS, FULL, REDUCED, EXTRA_S, EXTRAPOLATED_S, TRACED, OUTSIDE = 0, 1, 2, 3, 4, 5, 6
+# FULL..EXTRAPOLATED_S interpolate an output ray; NULL_S answers the null ray (trapped: every
+# interpolant of the query's class is null).
+MISS, FULL, REDUCED, EXTRA_S, EXTRAPOLATED_S, TRACED, OUTSIDE, NULL_S = 0, 1, 2, 3, 4, 5, 6, 7
 ANSWER_NAMES = ("miss", "interpolated_16", "interpolated_reduced", "interpolated_extra",
-                "interpolated_extrapolated", "traced", "traced_outside_tree")
+                "interpolated_extrapolated", "traced", "traced_outside_tree", "interpolated_null")
 # Why a ray was traced.
 WHY_CLASSES, WHY_USABLE, WHY_THRESHOLD, WHY_RAYTREE, WHY_BLEND = 1, 2, 3, 4, 5
 WHY_NAMES = ("", "more_than_two_classes", "too_few_usable", "threshold", "raytree_mismatch",
@@ -53,6 +58,8 @@ class QueryOptions:
     distance: float | None = None      # pairwise distance threshold between output origins
     threshold_on: str = "samples"      # compare all interpolated samples (the paper), or the
                                        # four viewpoints' "intermediate" rays f*(R_VP)
+    null_interp: bool = True           # a ray whose interpolants (class rules, null rays
+                                       # counted) are all null is null; False: traced (the paper)
 
     def validate(self) -> "QueryOptions":
         if self.policy not in ("ri", "raytree"):
@@ -199,6 +206,22 @@ class TreeQuery:
             a[go] for a in (q, alpha, beta, leaf, trees, lx, ly, flat, cls, pcls))
         m = len(q)
         usable = ((cls == pc[:, None]) & ~tree.samples.null[flat]).reshape(m, 4, 4)
+        thresholds = opt.angle_deg is not None or opt.distance is not None
+        ang = None if opt.angle_deg is None else np.radians(opt.angle_deg)
+        dist = None if opt.distance is None else opt.distance * tree.diag
+        per_sample = thresholds and opt.threshold_on == "samples"
+        vals = np.zeros((m, 4, 6, 12))
+        vals[:, :, :4] = tree.samples.gather(flat).reshape(m, 4, 4, 12)
+        thr_hit = np.zeros((m, 4), bool)              # DQs whose corners the thresholds cut
+        if per_sample:
+            # direction level: far corners of a DQ are not usable (an outlier is dropped)
+            v = vals[:, :, :4].reshape(m, 16, 12)
+            far = far_pairs(v[:, :, 3:6], v[:, :, 0:3], usable.reshape(m, 16), ang, dist)
+            far = far.reshape(m, 4, 4, 4, 4)
+            for k in range(4):
+                usable[:, k], thr_hit[:, k] = drop_outlier(
+                    far[:, k, :, k], usable[:, k], UNIT_CORNERS,
+                    np.stack([lx[:, k], ly[:, k]], 1))
         # direction level: per DQ weights over its corners (plus extra samples)
         w = np.zeros((m, 4, 6))                                  # 4 corners + up to 2 extras
         sid = np.zeros((m, 4, 6), np.int64)
@@ -214,34 +237,41 @@ class TreeQuery:
             fail = np.flatnonzero(sk == FAIL)
             if len(fail):
                 self._extra(fail, k, leaf, lx, ly, usable, pc, w, sid, dq_st, is_extra, lpos)
+        ex_r, ex_k = np.nonzero(is_extra)
+        if len(ex_r):
+            vals[ex_r, ex_k, 4:] = tree.samples.gather(sid[ex_r, ex_k, 4:])
         # viewpoint level
         dq_ok = dq_st != FAIL
-        W, qst = cell_weights(dq_ok, alpha, beta, opt.extrapolation)
-        few = qst == FAIL
-        vals = tree.samples.gather(sid)                                 # (m, 4, 6, 12)
         # perspective-correct directions: weight each output direction by the length of its
         # sample's direction-cube point (exact for affine ray maps such as a plane mirror)
         vals_s = vals.copy()
         vals_s[..., 3:6] *= tree.dir_forest.cube_scale(leaf, trees, lpos[..., 0],
                                                        lpos[..., 1])[..., None]
         inter = np.einsum("nkj,nkjc->nkc", w, vals_s)                   # f*(R_VP) per DQ
-        used_dq = dq_ok & (qst != FAIL)[:, None]
-        thr = np.ones(m, bool)
-        if opt.angle_deg is not None or opt.distance is not None:
-            ang = None if opt.angle_deg is None else np.radians(opt.angle_deg)
-            dist = None if opt.distance is None else opt.distance * tree.diag
-            if opt.threshold_on == "samples":
-                # every usable sample of every DQ used (the chosen triangle's for extras)
+        thr_q = np.zeros(m, bool)
+        if thresholds:
+            if per_sample:
+                # DQs are far apart when any of their interpolants are (the chosen triangle's
+                # samples for extras); an extra-sample triangle with a far pair is unusable
                 member = np.concatenate([usable, np.zeros((m, 4, 2), bool)], axis=2)
-                member = np.where(is_extra[:, :, None], w != 0, member)
-                used = (used_dq[:, :, None] & member).reshape(m, 24)
-                v24 = vals.reshape(m, 24, 12)
-                thr = pairwise_within(v24[:, :, 3:6], v24[:, :, 0:3], used, ang, dist)
+                member = np.where(is_extra[:, :, None], w != 0, member) & dq_ok[:, :, None]
+                v = vals.reshape(m, 24, 12)
+                far = far_pairs(v[:, :, 3:6], v[:, :, 0:3], member.reshape(m, 24), ang, dist)
+                blocks = far.reshape(m, 4, 6, 4, 6).any(axis=(2, 4))           # (m, 4, 4)
+                inner = np.diagonal(blocks, axis1=1, axis2=2)                  # (m, 4)
+                thr_hit |= inner
+                dq_ok &= ~inner
             else:
                 # the intermediate rays f*(R_VP): parallel query rays from the four viewpoints
                 idir = inter[:, :, 3:6] / np.maximum(
                     np.linalg.norm(inter[:, :, 3:6], axis=2), 1e-300)[:, :, None]
-                thr = pairwise_within(idir, inter[:, :, 0:3], used_dq, ang, dist)
+                blocks = far_pairs(idir, inter[:, :, 0:3], dq_ok, ang, dist)
+            dq_ok, thr_q = drop_outlier(blocks, dq_ok, UNIT_CORNERS, np.stack([alpha, beta], 1))
+        W, qst = cell_weights(dq_ok, alpha, beta, opt.extrapolation)
+        few = qst == FAIL
+        # too few interpolants because the thresholds cut them: traced "by the threshold"
+        thr = ~(few & (thr_q | np.any(thr_hit & ~dq_ok, axis=1)))
+        few &= thr
         sid = sid.reshape(m, 24)
         weights = (W[:, :, None] * w).reshape(m, 24)
         out = np.einsum("nk,nkc->nc", W, inter)
@@ -257,7 +287,43 @@ class TreeQuery:
         g = np.flatnonzero(good)
         self._fill(res, ans, q[g], o, d, tmax, out[g, 0:3], od[g] / lod[g, None], out[g, 6:9],
                    nm[g] / lnm[g, None], pc[g], self._patch_of(sid[g], weights[g]))
+        if opt.null_interp:
+            nul = tree.samples.null[flat]
+            r = np.flatnonzero(few & np.any(nul & (cls == pc[:, None]), axis=1))
+            if len(r):
+                self._null(r, o, d, tmax, q, alpha, beta, lx, ly, flat, cls, pc, nul, res,
+                           ans, why)
         return n_exact
+
+    def _null(self, r, o, d, tmax, q, alpha, beta, lx, ly, flat, cls, pc, nul, res, ans, why):
+        """Rows ``r`` that had too few usable interpolants: the same interpolation with the
+        null samples of the query's class as the usable ones (null as a state of its own, like
+        a class: four null corners, or three with the query inside their triangle, at both
+        levels). Where it succeeds the query ray is answered null (trapped), with the
+        interpolated first-hit point and normal for its local illumination."""
+        m = len(r)
+        use = ((cls[r] == pc[r, None]) & nul[r]).reshape(m, 4, 4)
+        w = np.zeros((m, 4, 4))
+        st = np.zeros((m, 4), np.int8)
+        for k in range(4):
+            w[:, k], st[:, k] = cell_weights(use[:, k], lx[r, k], ly[r, k])
+        W, qst = cell_weights(st != FAIL, alpha[r], beta[r])
+        weights = (W[:, :, None] * w).reshape(m, 16)
+        ok = qst != FAIL
+        r, weights = r[ok], weights[ok]
+        if len(r) == 0:
+            return
+        vals = self.tree.samples.gather(flat[r])                           # (g, 16, 12)
+        pt = np.einsum("nk,nkc->nc", weights, vals[:, :, 6:9])
+        nm = np.einsum("nk,nkc->nc", weights, vals[:, :, 9:12])
+        ln = np.linalg.norm(nm, axis=1)
+        keep = ln > MIN_BLEND_NORM
+        r, weights, pt, nm, ln = r[keep], weights[keep], pt[keep], nm[keep], ln[keep]
+        rows = q[r]
+        ans[rows] = NULL_S
+        why[rows] = 0
+        self._fill(res, ans, rows, o, d, tmax, pt, np.zeros_like(pt), pt, nm / ln[:, None],
+                   pc[r], self._patch_of(flat[r], weights), null=True)
 
     def _extra(self, fail, k, leaf, lx, ly, usable, pc, w, sid, dq_st, is_extra, lpos):
         """Direction-level interpolation from the extra samples of one/two-interpolant leaves
@@ -375,7 +441,7 @@ class TreeQuery:
         best = np.argmax(np.abs(weights), axis=1)
         return self.tree.samples.patch[sid[np.arange(len(sid)), best]].astype(np.int64)
 
-    def _fill(self, res, ans, rows, o, d, tmax, oo, od, pt, nm, cls, patch):
+    def _fill(self, res, ans, rows, o, d, tmax, oo, od, pt, nm, cls, patch, null=False):
         dd = d[rows]
         t_first = np.einsum("ij,ij->i", pt - o[rows], dd)
         # the environment is in front of the interpolated hit: the object is not seen
@@ -387,6 +453,7 @@ class TreeQuery:
         flip = np.einsum("ij,ij->i", nm, dd) > 0
         nm = np.where(flip[:, None], -nm, nm)
         res.hit[rows] = True
+        res.null[rows] = null
         res.out_origin[rows] = oo
         res.out_dir[rows] = od
         res.point[rows] = pt

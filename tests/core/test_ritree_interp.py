@@ -10,7 +10,7 @@ import pytest
 
 from riray.ritree.dircube import CUBE, DOMAIN, N_SLOTS, SLOT, UV_AXES, cube_to_dir, dir_to_cube
 from riray.ritree.interp import (BILINEAR, EXTRAPOLATED, FAIL, TRIANGLE, UNIT_CORNERS,
-                                 barycentric, cell_weights, pairwise_within, pick_triangle,
+                                 barycentric, cell_weights, drop_outlier, far_pairs, pick_triangle,
                                  triangle_status)
 from riray.ritree.quadtree import Forest
 
@@ -474,40 +474,40 @@ def test_pick_triangle_prefers_first_containing():
     assert np.allclose(est, field(q), atol=1e-12)
 
 
-def brute_pairwise(dirs, origins, used, max_angle, max_dist):
-    out = np.ones(len(used), bool)
-    for i in range(len(used)):
+def brute_far(dirs, origins, used, max_angle, max_dist):
+    """(N, K, K) far pairs by a double loop over arccos angles and Euclidean gaps."""
+    n, k = used.shape
+    out = np.zeros((n, k, k), bool)
+    for i in range(n):
         idx = np.flatnonzero(used[i])
         for a in idx:
             for b in idx:
                 if max_angle is not None:
                     c = np.clip(np.dot(dirs[i, a], dirs[i, b]), -1, 1)
-                    if np.arccos(c) > max_angle:
-                        out[i] = False
+                    out[i, a, b] |= np.arccos(c) > max_angle
                 gap = np.linalg.norm(origins[i, a] - origins[i, b])
-                if max_dist is not None and gap > max_dist:
-                    out[i] = False
+                out[i, a, b] |= max_dist is not None and gap > max_dist
     return out
 
 
 def near_limit(dirs, origins, used, max_angle, max_dist, eps=1e-7):
-    """Rows where some used pair is within eps of a threshold (either answer is right)."""
-    amb = np.zeros(len(used), bool)
+    """Pairs (N, K, K) within eps of a threshold (either answer is right)."""
+    amb = np.zeros(used.shape + used.shape[1:], bool)
     pair = used[:, :, None] & used[:, None, :]
     if max_angle is not None:
         ang = 2 * np.arctan2(np.linalg.norm(dirs[:, :, None] - dirs[:, None], axis=3),
                              np.linalg.norm(dirs[:, :, None] + dirs[:, None], axis=3))
-        amb |= np.any(pair & (np.abs(ang - max_angle) < eps), axis=(1, 2))
+        amb |= pair & (np.abs(ang - max_angle) < eps)
     if max_dist is not None:
         dd = np.linalg.norm(origins[:, :, None] - origins[:, None], axis=3)
-        amb |= np.any(pair & (np.abs(dd - max_dist) < eps), axis=(1, 2))
+        amb |= pair & (np.abs(dd - max_dist) < eps)
     return amb
 
 
 @pytest.mark.parametrize("max_angle,max_dist", [(np.radians(20), None), (None, 0.3),
                                                 (np.radians(5), 0.1), (None, None),
                                                 (np.radians(179), 2.0), (0.0, None)])
-def test_pairwise_within_matches_double_loop(max_angle, max_dist):
+def test_far_pairs_match_double_loop(max_angle, max_dist):
     rng = np.random.default_rng(5)
     N, K = 600, 24
     centre = unit(rng.normal(size=(N, 1, 3)))
@@ -524,9 +524,40 @@ def test_pairwise_within_matches_double_loop(max_angle, max_dist):
         dirs[20:40] = dirs[20:40, :1]          # identical directions pass even at 0
     dirs[40:60, 1] = -dirs[40:60, 0]           # antipodal pairs (chord 2, angle pi)
     used[40:60, :2] = True
-    got = pairwise_within(dirs, origins, used, max_angle, max_dist)
-    want = brute_pairwise(dirs, origins, used, max_angle, max_dist)
+    got = far_pairs(dirs, origins, used, max_angle, max_dist)
+    want = brute_far(dirs, origins, used, max_angle, max_dist)
     amb = near_limit(dirs, origins, used, max_angle, max_dist)
     assert np.array_equal(got[~amb], want[~amb])
-    assert np.all(got[:10])
-    assert 0 < want.sum() < N or max_angle is None and max_dist is None or max_angle == 0.0
+    assert not got[:10].any()                            # nothing or one interpolant used
+    assert np.array_equal(got, got.transpose(0, 2, 1))
+    rows = want.any(axis=(1, 2))
+    assert 0 < rows.sum() < N or max_angle is None and max_dist is None or max_angle == 0.0
+    if max_angle == np.radians(179):
+        assert np.all(want[40:60, 0, 1])                 # antipodal pairs are far at 179 deg
+
+
+def test_drop_outlier_rules():
+    """Rows of four cell corners (positions UNIT_CORNERS) with hand-set far pairs."""
+    def far_of(pairs):
+        f = np.zeros((4, 4), bool)
+        for a, b in pairs:
+            f[a, b] = f[b, a] = True
+        return f
+    cases = [  # (far pairs, used, query) -> (usable after, changed)
+        ([], [1, 1, 1, 1], (0.2, 0.2), [1, 1, 1, 1], False),
+        ([(3, 0), (3, 1), (3, 2)], [1, 1, 1, 1], (0.2, 0.2), [1, 1, 1, 0], True),   # outlier
+        ([(3, 0), (3, 1), (3, 2)], [1, 1, 1, 1], (0.9, 0.9), [1, 1, 1, 0], True),   # even nearest
+        ([(0, 3)], [1, 1, 1, 1], (0.1, 0.2), [1, 1, 1, 0], True),   # tie: farthest from q goes
+        ([(0, 3)], [1, 1, 1, 1], (0.9, 0.7), [0, 1, 1, 1], True),
+        ([(0, 1), (2, 3)], [1, 1, 1, 1], (0.5, 0.5), [0, 0, 0, 0], True),   # two groups: none
+        ([(0, 1), (0, 2), (1, 3), (2, 3)], [1, 1, 1, 1], (0.5, 0.5), [0, 0, 0, 0], True),
+        ([(0, 3)], [1, 1, 1, 0], (0.5, 0.5), [1, 1, 1, 0], False),  # far pair with an unused
+        ([(0, 1)], [1, 1, 0, 0], (0.1, 0.1), [1, 0, 0, 0], True),
+    ]
+    far = np.stack([far_of(c[0]) for c in cases])
+    used = np.array([c[1] for c in cases], bool)
+    q = np.array([c[2] for c in cases], float)
+    out, changed = drop_outlier(far, used, UNIT_CORNERS, q)
+    assert np.array_equal(out, np.array([c[3] for c in cases], bool))
+    assert np.array_equal(changed, np.array([c[4] for c in cases]))
+    assert np.array_equal(used, np.array([c[1] for c in cases], bool))   # input untouched

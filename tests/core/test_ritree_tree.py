@@ -29,8 +29,8 @@ from riray.ritree.bake import BakeCancelled, bake
 from riray.ritree.dircube import CUBE, DOMAIN, N_SLOTS, SLOT, UV_AXES, cube_to_dir, dir_to_cube
 from riray.ritree.interp import angle_between
 from riray.ritree.quadtree import Forest
-from riray.ritree.query import (EXTRAPOLATED_S, FULL, MISS, OUTSIDE, REDUCED, TRACED,
-                                WHY_RAYTREE, WHY_THRESHOLD, QueryOptions, TreeQuery,
+from riray.ritree.query import (EXTRAPOLATED_S, FULL, MISS, NULL_S, OUTSIDE, REDUCED, TRACED,
+                                WHY_RAYTREE, WHY_THRESHOLD, WHY_USABLE, QueryOptions, TreeQuery,
                                 entry_points)
 from riray.ritree.region import Region
 
@@ -225,7 +225,8 @@ def stored_matches_exact(tree, sid, ex, edge):
 
 
 def check_answers(res, ans, why):
-    assert np.all((ans >= MISS) & (ans <= OUTSIDE))
+    assert np.all((ans >= MISS) & (ans <= NULL_S))
+    assert np.all(res.null[ans == NULL_S]) and np.all(res.hit[ans == NULL_S])
     for k in ("out_origin", "out_dir", "point", "normal"):
         assert np.all(np.isfinite(getattr(res, k)[res.hit])), k
     ok = res.hit & ~res.null
@@ -545,8 +546,8 @@ def handmade_tree(st, values, null=None, hashes=None, patch=None):
     oo, od, pt, nm = values(X[:, 0], X[:, 1], U[:, 0], U[:, 1])
     null = np.zeros(16, bool) if null is None else np.asarray(null, bool)
     oo, od, pt, nm = (np.array(a, np.float32) for a in (oo, od, pt, nm))
-    oo[null], pt[null] = 1e6, -1e6                      # garbage a null must never lend
-    od[null], nm[null] = 0.0, 0.0
+    oo[null], od[null] = 1e6, 0.0     # a null's output ray: garbage it must never lend (its
+                                      # first hit point and normal are real, as in a bake)
     patch = np.zeros(16) if patch is None else patch
     hashes = np.full(16, 7) if hashes is None else hashes
     samples = Samples(out_o=oo, out_d=od, point=pt, normal=nm,
@@ -653,20 +654,85 @@ def test_null_samples_are_never_interpolants(mirror, case):
 
 
 def test_null_rays_in_a_baked_tree(sphere_st):
-    """max_events = 1: every ray that enters the glass sphere is trapped (null). No answer
-    may be interpolated from such samples: hits are traced (and null), the rest miss."""
+    """max_events = 1: every ray that enters the glass sphere is trapped (null). No output ray
+    may be interpolated from such samples: with the paper's rule hits are traced (and null);
+    by default rays amid null samples are answered null, the rest traced; misses miss."""
     st = tracer_of(sphere_object(), max_events=1)
     tree = bake(st, BakeParams(viewpoint_depth=1, direction_depth=2),
                 region=cells_region(face_cells(1, 5, 0.5, 1.0)), workers=1)
     assert tree.samples.null.any()
     assert np.all(tree.samples.null == (tree.samples.patch >= 0))
     o, d = sphere_queries(tree, 1500, 4)
-    res, ans, why, _ = TreeQuery(tree, st)(o, d)
     ex = st.object_function(o, d)
+    for null_interp in (False, True):
+        res, ans, why, _ = TreeQuery(tree, st, QueryOptions(null_interp=null_interp))(o, d)
+        check_answers(res, ans, why)
+        assert not interpolated(ans).any()
+        answered = (ans == TRACED) | (ans == OUTSIDE) | (ans == NULL_S)
+        assert np.all(answered[ex.hit])
+        assert np.array_equal(res.null, ex.null) and np.array_equal(res.hit, ex.hit)
+        nul = ans == NULL_S
+        assert nul.sum() > (0.03 * ex.hit.sum() if null_interp else -1)
+        assert null_interp or not nul.any()
+        # a null answer's hit point and normal are near the exact first hit's (coarse tree:
+        # chords of a sphere of radius 0.15)
+        assert np.abs(res.point[nul] - ex.point[nul]).max(initial=0) < 0.02
+        assert np.degrees(angle_between(res.normal[nul], ex.normal[nul])).max(initial=0) < 15
+
+
+def test_null_answer_needs_null_interpolants(mirror):
+    """Hand-made tree with viewpoints 0-2 all null and viewpoint 3 live: queries inside the
+    triangle of viewpoints 0, 1, 2 are answered null with the affine hit point of the samples;
+    the rest have neither three live nor three null viewpoints and are traced; with
+    null_interp off nothing is answered null."""
+    st, _ = mirror
+    null = np.zeros(16, bool)
+    null[:12] = True
+    tree = handmade_tree(st, affine_values, null=null)
+    o, d, al, be, lx, ly = handmade_queries(3000, 6)
+    res, ans, why, _ = TreeQuery(tree, st, QueryOptions(angle_deg=None))(o, d)
     check_answers(res, ans, why)
-    assert not interpolated(ans).any()
-    assert np.all((ans[ex.hit] == TRACED) | (ans[ex.hit] == OUTSIDE))
-    assert np.array_equal(res.null, ex.null) and np.array_equal(res.hit, ex.hit)
+    X = np.stack([2 * al - 1, 2 * be - 1, 2 * lx - 1, 2 * ly - 1], 1)
+    inside = al + be < 1 - 1e-9
+    outside = al + be > 1 + 1e-9
+    assert np.all(ans[inside] == NULL_S) and np.all(ans[outside] == TRACED)
+    assert np.allclose(res.point[inside], (X @ A_P)[inside], atol=1e-6)
+    assert np.all(res.out_dir[inside] == 0)
+    _, ans_p, why_p, _ = TreeQuery(tree, st, QueryOptions(angle_deg=None, null_interp=False))(o, d)
+    assert np.all(ans_p == TRACED) and np.all(why_p == WHY_USABLE)
+
+
+def test_angle_threshold_drops_an_outlying_corner(mirror):
+    """Paper 5.3: interpolants too far from the others are not usable. Corner (1, 1) of
+    viewpoint 0 points 40 deg away from the rest; with a 20 deg threshold it is dropped:
+    queries in the triangle of the other three corners are interpolated exactly (reduced),
+    the rest of viewpoint 0's leaf fails and the viewpoint level goes on with the other three
+    viewpoints where the query is inside their triangle; everything else is traced by the
+    threshold. Without the threshold the outlier is blended in."""
+    st, _ = mirror
+    tilt = unit(E_DIR + np.tan(np.radians(40)) * unit(np.cross(E_DIR, [1.0, 0, 0])))
+
+    def values(x, y, u, v):
+        oo, od, pt, nm = affine_values(x, y, u, v)
+        od = od.copy()
+        od[3] = tilt
+        return oo, od, pt, nm
+
+    tree = handmade_tree(st, values)
+    o, d, al, be, lx, ly = handmade_queries(4000, 7)
+    res, ans, why, _ = TreeQuery(tree, st, QueryOptions(angle_deg=20))(o, d)
+    check_answers(res, ans, why)
+    margin = (np.abs(lx + ly - 1) > 1e-6) & (np.abs(al + be - 1) > 1e-6)
+    dq0 = lx + ly < 1                      # triangle (0,0), (1,0), (0,1) of viewpoint 0's leaf
+    vp123 = al + be > 1                    # triangle of viewpoints 1, 2, 3
+    want = dq0 | vp123
+    m = interpolated(ans)
+    assert np.array_equal(m[margin], want[margin])
+    assert np.all(ans[m] == REDUCED)
+    assert np.allclose(res.out_dir[m], E_DIR, atol=1e-6)
+    assert np.all(why[margin & ~want] == WHY_THRESHOLD)
+    _, ans_off, _, _ = TreeQuery(tree, st, QueryOptions(angle_deg=None))(o, d)
+    assert np.all(ans_off == FULL)
 
 
 # --------------------------------------------------------------------------- 8: raytree
