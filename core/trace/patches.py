@@ -45,9 +45,11 @@ MAX_STEP = 0.5
 # Seeds: a plane hit outside the extended corner triangles (barycentric margin) seeds at the
 # sub-patch midpoint instead.
 SEED_MARGIN = 0.25
-# De Casteljau retry depth for pairs whose Newton run found no usable root (each level halves
-# the net in both directions; the ray is kept only where it meets a child's box).
-FALLBACK_LEVELS = 1
+# De Casteljau retry depth for pairs whose Newton run found no root in the net, or a grazing
+# one (its net may hold a twin): each level halves the net in both directions; the ray is kept
+# only where it meets a child's box and its control hull. Two levels: with the end-on hull
+# test few pairs get here, and one level left the twin of a grazing root unfound.
+FALLBACK_LEVELS = 2
 # A root whose ray makes an angle below the sub-patch's normal-cone half-angle with the tangent
 # plane may have a twin root in the same sub-patch (two roots in one net need the normal to turn
 # by at least twice that angle). The cone of a rational net is an estimate: it is widened by
@@ -63,6 +65,11 @@ T_MIN_REL = 1e-9
 DEGENERATE_REL = 1e-9
 # Pairs solved per batch (bounds memory: a degree-5 pair gathers 36 x 4 float64 control values).
 PAIR_CHUNK = 1 << 16
+# Angular slack (rad) of the end-on hull test: a line within rounding of the hull's boundary
+# (or through a control point, angle of a zero vector) counts as meeting it.
+HULL_GAP_SLACK = 1e-9
+# A control point this close to the line (relative to the farthest) is on it: meeting.
+HULL_POINT_REL = 1e-12
 
 
 @dataclass
@@ -240,8 +247,8 @@ class PatchTracer:
         """Newton on control nets ``ctrl`` (each covering the rectangle ``box`` = (s0, s1, t0, t1)
         of sub-patch ``sp``'s local coordinates) for rays ``r``; records hits nearer than best_t.
 
-        Pairs without a root, or with a root outside the net although the ray crosses the net's
-        corner triangles, are split by de Casteljau into four children, kept where the ray still meets their boxes."""
+        Pairs without a root, or with a root outside the net, are split by de Casteljau into
+        four children, kept where the ray still meets their boxes."""
         if len(r) == 0:
             return
         ro, rd = o[r], d[r]
@@ -255,13 +262,17 @@ class PatchTracer:
             if len(r) == 0:
                 return
         self.stats["pairs"] += len(r)
-        s, t, crossed = _seed(ctrl, ro, rd)
+        s, t = _seed(ctrl, ro, rd)
         ok = self._newton(ctrl, s, t, n1, c1, n2, c2)
         in_net = (s >= -PARAM_MARGIN) & (s <= 1 + PARAM_MARGIN) & (t >= -PARAM_MARGIN) \
             & (t <= 1 + PARAM_MARGIN)
-        # no root at all, or a root elsewhere although the ray crosses the net's corner triangles
-        retry = ~ok | (~in_net & crossed)
-        self._accept(o, d, tmin, best_t, res, r, ctrl, grp, sp, box, ok, s, t, twin=True)
+        # no root at all, or a root outside the net (another root may hide in it: a grazing
+        # ray, or a seed from outside the corner triangles)
+        retry = ~ok | ~in_net
+        grazing = self._accept(o, d, tmin, best_t, res, r, ctrl, grp, sp, box, ok, s, t,
+                               twin=True)
+        # a grazing root may have a twin in the net that the twin search missed
+        retry |= grazing
         if levels > 0:
             self._subdivide(o, d, tmin, best_t, res, r, ctrl, grp, sp, box, levels,
                             np.flatnonzero(retry))
@@ -308,7 +319,8 @@ class PatchTracer:
         ray in one flat net need a grazing ray (the net's normal cone bounds how far the surface
         turns), and the twin lies about one chord length 2 |cos| / curvature along the ray:
         behind a found root (a nearer hit), ahead of a root at the ray's own start (t <= tmin:
-        the next hit of a ray leaving the surface)."""
+        the next hit of a ray leaving the surface). Returns the mask of pairs whose root is
+        grazing (their net may hold a second root)."""
         s_sub = box[:, 0] + (box[:, 1] - box[:, 0]) * s
         t_sub = box[:, 2] + (box[:, 3] - box[:, 2]) * t
         ps = grp.ps0[sp] + (grp.ps1[sp] - grp.ps0[sp]) * s_sub
@@ -316,8 +328,9 @@ class PatchTracer:
         ok = ok & (ps >= -PARAM_MARGIN) & (ps <= 1 + PARAM_MARGIN) & (pt >= -PARAM_MARGIN) \
             & (pt <= 1 + PARAM_MARGIN)
         good = np.flatnonzero(ok)
+        grazing = np.zeros(len(r), bool)
         if len(good) == 0:
-            return
+            return grazing
         P, Ps, Pt, Pss, Pst, Ptt = bz.bezier_eval(ctrl, s[good], t[good], derivatives=2,
                                                   index=good)
         rr = r[good]
@@ -334,8 +347,9 @@ class PatchTracer:
                      Ps[first], Pt[first], nrm[first], ln[first], s_sub[good[first]],
                      t_sub[good[first]])
         g = np.flatnonzero(np.abs(cos) < grp.cone_sin[sp[good]])
+        grazing[good[g]] = True
         if not twin or len(g) == 0:
-            return
+            return grazing
         # the ray direction within the tangent plane, in parameter units per unit length
         w = dd[g] - cos[g, None] * un[g]
         w /= np.maximum(np.linalg.norm(w, axis=1), 1e-300)[:, None]
@@ -350,7 +364,7 @@ class PatchTracer:
         near = (s2 >= -1.0) & (s2 <= 2.0) & (t2 >= -1.0) & (t2 <= 2.0)
         gi, s2, t2 = good[g][near], s2[near], t2[near]
         if len(gi) == 0:
-            return
+            return grazing
         ro, rd = o[r[gi]], d[r[gi]]
         n1, n2 = _ray_planes(rd)
         c1 = np.einsum("ij,ij->i", n1, ro)
@@ -358,6 +372,7 @@ class PatchTracer:
         ok2 = self._newton(ctrl[gi], s2, t2, n1, c1, n2, c2)
         self._accept(o, d, tmin, best_t, res, r[gi], ctrl[gi], grp, sp[gi], box[gi], ok2,
                      s2, t2, twin=False)
+        return grazing
 
     def _record(self, res, best_t, grp, spf, rr, tt, P, Ps, Pt, nrm, ln, s_sub, t_sub):
         """Store hits (one per ray) that beat the running best; (s_sub, t_sub) are sub-patch
@@ -442,8 +457,7 @@ def _ray_planes(d):
 
 def _seed(ctrl, ro, rd):
     """Newton seeds (s, t) from the ray's hit on the two triangles spanned by the net's corner
-    points (its surface corners); the net's midpoint where the plane hit lies far outside.
-    Also returns whether the ray crossed the (slightly extended) triangles."""
+    points (its surface corners); the net's midpoint where the plane hit lies far outside."""
     corners = ctrl[:, [0, -1, 0, -1], [0, 0, -1, -1]]
     cP = corners[..., :3] / corners[..., 3:]
     n = len(ro)
@@ -466,7 +480,7 @@ def _seed(ctrl, ro, rd):
         s = np.where(hit, np.clip(ls, 0.0, 1.0), s)
         t = np.where(hit, np.clip(lt, 0.0, 1.0), t)
         found |= hit
-    return s, t, found
+    return s, t
 
 
 def _tangent_coords(Ps, Pt, w):
@@ -483,13 +497,24 @@ def _tangent_coords(Ps, Pt, w):
 
 
 def _hull_meets(ctrl, n1, c1, n2, c2):
-    """False where the ray certainly misses the net's surface: all control points lie strictly
-    on one side of one of the two planes containing the ray (convex hull property, w > 0)."""
+    """False where the ray certainly misses the net's surface: the ray's line, seen end-on in
+    the plane of (n1, n2), lies outside the 2D convex hull of the control points (convex hull
+    property; w > 0 keeps the homogeneous points' angles). First the hull's bounding box (all
+    points on one side of one ray plane), then the hull itself: the line is outside it when
+    the points' angles around it leave a gap wider than pi."""
     h = ctrl.reshape(len(ctrl), -1, 4)
     f1 = np.einsum("nkj,nj->nk", h[..., :3], n1) - c1[:, None] * h[..., 3]
     f2 = np.einsum("nkj,nj->nk", h[..., :3], n2) - c2[:, None] * h[..., 3]
-    apart = (f1.min(1) > 0) | (f1.max(1) < 0) | (f2.min(1) > 0) | (f2.max(1) < 0)
-    return ~apart
+    meets = ~((f1.min(1) > 0) | (f1.max(1) < 0) | (f2.min(1) > 0) | (f2.max(1) < 0))
+    idx = np.flatnonzero(meets)
+    if len(idx):
+        a, b = f1[idx], f2[idx]
+        ang = np.sort(np.arctan2(b, a), axis=1)
+        gap = np.maximum(np.diff(ang, axis=1).max(axis=1), ang[:, 0] + 2 * np.pi - ang[:, -1])
+        r = np.hypot(a, b)
+        on_point = r.min(axis=1) <= HULL_POINT_REL * r.max(axis=1)
+        meets[idx] = (gap <= np.pi + HULL_GAP_SLACK) | on_point
+    return meets
 
 
 def _ray_box(o, d, lo, hi, tmin, tmax):
