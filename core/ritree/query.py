@@ -216,12 +216,12 @@ class TreeQuery:
         if per_sample:
             # direction level: far corners of a DQ are not usable (an outlier is dropped)
             v = vals[:, :, :4].reshape(m, 16, 12)
-            far = far_pairs(v[:, :, 3:6], v[:, :, 0:3], usable.reshape(m, 16), ang, dist)
-            far = far.reshape(m, 4, 4, 4, 4)
+            rows, far = far_pairs(v[:, :, 3:6], v[:, :, 0:3], usable.reshape(m, 16), ang, dist)
+            far = far.reshape(-1, 4, 4, 4, 4)
             for k in range(4):
-                usable[:, k], thr_hit[:, k] = drop_outlier(
-                    far[:, k, :, k], usable[:, k], UNIT_CORNERS,
-                    np.stack([lx[:, k], ly[:, k]], 1))
+                usable[rows, k], thr_hit[rows, k] = drop_outlier(
+                    far[:, k, :, k], usable[rows, k], UNIT_CORNERS,
+                    np.stack([lx[rows, k], ly[rows, k]], 1))
         # direction level: per DQ weights over its corners (plus extra samples)
         w = np.zeros((m, 4, 6))                                  # 4 corners + up to 2 extras
         sid = np.zeros((m, 4, 6), np.int64)
@@ -256,17 +256,19 @@ class TreeQuery:
                 member = np.concatenate([usable, np.zeros((m, 4, 2), bool)], axis=2)
                 member = np.where(is_extra[:, :, None], w != 0, member) & dq_ok[:, :, None]
                 v = vals.reshape(m, 24, 12)
-                far = far_pairs(v[:, :, 3:6], v[:, :, 0:3], member.reshape(m, 24), ang, dist)
-                blocks = far.reshape(m, 4, 6, 4, 6).any(axis=(2, 4))           # (m, 4, 4)
-                inner = np.diagonal(blocks, axis1=1, axis2=2)                  # (m, 4)
-                thr_hit |= inner
-                dq_ok &= ~inner
+                rows, far = far_pairs(v[:, :, 3:6], v[:, :, 0:3], member.reshape(m, 24), ang,
+                                      dist)
+                blocks = far.reshape(-1, 4, 6, 4, 6).any(axis=4).any(axis=2)   # (R, 4, 4)
+                inner = np.diagonal(blocks, axis1=1, axis2=2)                  # (R, 4)
+                thr_hit[rows] |= inner
+                dq_ok[rows] &= ~inner
             else:
                 # the intermediate rays f*(R_VP): parallel query rays from the four viewpoints
                 idir = inter[:, :, 3:6] / np.maximum(
                     np.linalg.norm(inter[:, :, 3:6], axis=2), 1e-300)[:, :, None]
-                blocks = far_pairs(idir, inter[:, :, 0:3], dq_ok, ang, dist)
-            dq_ok, thr_q = drop_outlier(blocks, dq_ok, UNIT_CORNERS, np.stack([alpha, beta], 1))
+                rows, blocks = far_pairs(idir, inter[:, :, 0:3], dq_ok, ang, dist)
+            dq_ok[rows], thr_q[rows] = drop_outlier(blocks, dq_ok[rows], UNIT_CORNERS,
+                                                    np.stack([alpha[rows], beta[rows]], 1))
         W, qst = cell_weights(dq_ok, alpha, beta, opt.extrapolation)
         few = qst == FAIL
         # too few interpolants because the thresholds cut them: traced "by the threshold"

@@ -524,7 +524,9 @@ def test_far_pairs_match_double_loop(max_angle, max_dist):
         dirs[20:40] = dirs[20:40, :1]          # identical directions pass even at 0
     dirs[40:60, 1] = -dirs[40:60, 0]           # antipodal pairs (chord 2, angle pi)
     used[40:60, :2] = True
-    got = far_pairs(dirs, origins, used, max_angle, max_dist)
+    rows, sub = far_pairs(dirs, origins, used, max_angle, max_dist)
+    got = np.zeros((N, K, K), bool)
+    got[rows] = sub
     want = brute_far(dirs, origins, used, max_angle, max_dist)
     amb = near_limit(dirs, origins, used, max_angle, max_dist)
     assert np.array_equal(got[~amb], want[~amb])
