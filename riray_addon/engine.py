@@ -8,11 +8,16 @@ exactly (the user is told; scene.riray.allow_tracing = False turns that into an 
 Passes: Combined, "Traced" (1 where an object ray fell back to tracing) and "Angle Error"
 (degrees between the output ray used and the exact one; traces the object rays again).
 Progress / cancel through update_progress / test_break; every failure is reported with
-self.report({'ERROR'}) - never a silent black frame.
+self.report({'ERROR'}) - never a silent black frame. Chunks run on scene.riray.render_processes
+worker processes (core.parallel.map_chunks: forked children that only run numpy code and
+return arrays; automatic = every core on Linux, in-process elsewhere: forking Blender on macOS
+is unsafe and Windows has no fork).
 """
 
 from __future__ import annotations
 
+import os
+import sys
 import time
 import traceback
 
@@ -20,6 +25,7 @@ import bpy
 import numpy as np
 
 from ..core.render.camera import camera_rays
+from ..core.parallel import map_chunks
 from ..core.render.exact import SceneTracer, render_pixels
 from . import backend, cache
 from .export import export_camera, export_scene
@@ -38,6 +44,18 @@ def resolve_target(scene):
         return scene.riray.target
     surfaces = [o for o in scene.objects if o.type == "SURFACE" and not o.hide_render]
     return surfaces[0] if len(surfaces) == 1 else None
+
+
+class _Cancelled(Exception):
+    """Esc during a render (raised from the progress callback; stops the worker pool)."""
+
+
+def render_processes(setting: int) -> int:
+    """Worker processes for a render: the setting, or automatically every core on Linux and 1
+    elsewhere (forking Blender is unsafe on macOS; Windows has no fork)."""
+    if setting > 0:
+        return int(setting)
+    return max(1, os.cpu_count() or 1) if sys.platform.startswith("linux") else 1
 
 
 def angle_error_deg(a: np.ndarray, b: np.ndarray, null_a: np.ndarray, null_b: np.ndarray):
@@ -114,55 +132,64 @@ class RirayRenderEngine(bpy.types.RenderEngine):
         want_angle = bool(opts.use_pass_angle_error)
         o, d = camera_rays(core_scene.cameras[0], w, h)
         n = len(o)
-        color = np.zeros((n, 3))
-        traced = np.zeros(n, np.float32)
-        angle = np.zeros(n, np.float32)
-        captured = {}
 
-        def exact_fn(oo, dd, tmax):
-            res = st.object_function(oo, dd, tmax)
-            captured["res"], captured["traced"] = res, np.ones(len(oo), bool)
-            return res, {}
+        def work(a, b):
+            """One chunk of pixels: colour, traced flags, angle errors, object time."""
+            captured = {}
 
-        def tree_fn(oo, dd, tmax):
-            res, extra = object_fn(oo, dd, tmax)
-            captured["res"] = res
-            captured["traced"] = np.asarray(extra.pop("traced", np.zeros(len(oo), bool)), bool)
-            return res, extra
+            def exact_fn(oo, dd, tmax):
+                res = st.object_function(oo, dd, tmax)
+                captured["res"], captured["traced"] = res, np.ones(len(oo), bool)
+                return res, {}
 
-        fn = exact_fn if object_fn is None else tree_fn
-        t_render = time.perf_counter()
-        obj_time, hits, traced_hits = 0.0, 0, 0
-        for a in range(0, n, CHUNK):
-            if self.test_break():
-                self.report({"WARNING"}, "render cancelled")
-                return
-            b = min(n, a + CHUNK)
-            col, stats, hit = render_pixels(st, o[a:b], d[a:b], fn)[:3]
-            color[a:b] = col
-            obj_time += stats["object_time_s"]
+            def tree_fn(oo, dd, tmax):
+                res, extra = object_fn(oo, dd, tmax)
+                captured["res"] = res
+                captured["traced"] = np.asarray(extra.pop("traced", np.zeros(len(oo), bool)),
+                                                bool)
+                return res, extra
+
+            col, stats, hit = render_pixels(st, o[a:b], d[a:b],
+                                            exact_fn if object_fn is None else tree_fn)[:3]
+            tr = np.zeros(b - a, np.float32)
+            ang = np.zeros(b - a, np.float32)
             if len(hit):
                 res = captured["res"]
-                tr = captured["traced"][res.hit]
-                traced[a + hit] = tr
-                hits += len(hit)
-                traced_hits += int(tr.sum())
+                tr[hit] = captured["traced"][res.hit]
                 if want_angle and object_fn is not None:
                     used = res.take(res.hit)
                     exact = st.object_function(o[a + hit], d[a + hit])
-                    angle[a + hit] = angle_error_deg(used.out_dir, exact.out_dir, used.null,
-                                                     exact.null)
-            frac = b / n
+                    ang[hit] = angle_error_deg(used.out_dir, exact.out_dir, used.null,
+                                               exact.null)
+            return col, tr, ang, stats["object_time_s"], len(hit)
+
+        def progress(frac):
+            if self.test_break():
+                raise _Cancelled
             self.update_progress(frac)
-            self.update_stats("", f"RI-Tree Preview: {100 * frac:.0f}% | traced "
-                                  f"{traced_hits}/{max(hits, 1)} object rays")
+            self.update_stats("", f"RI-Tree Preview: {100 * frac:.0f}%")
+
+        t_render = time.perf_counter()
+        procs = render_processes(scene.riray.render_processes)
+        try:
+            parts = map_chunks(work, n, CHUNK, procs, progress)
+        except _Cancelled:
+            self.report({"WARNING"}, "render cancelled")
+            return
+        color = np.concatenate([p[0] for p in parts]) if parts else np.zeros((0, 3))
+        traced = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0, np.float32)
+        angle = np.concatenate([p[2] for p in parts]) if parts else np.zeros(0, np.float32)
+        obj_time = sum(p[3] for p in parts)
+        hits = sum(p[4] for p in parts)
+        traced_hits = int(traced.sum())
         render_s = time.perf_counter() - t_render
         frac_traced = traced_hits / hits if hits else 0.0
         stats = {"frame": scene.frame_current, "width": w, "height": h,
                  "object_pixels": hits, "traced_pixels": traced_hits,
                  "traced_fraction": frac_traced, "object_time_s": obj_time,
                  "render_time_s": render_s, "export_build_s": build_s,
-                 "tree": status["state"], "mode": "tree" if object_fn else "exact"}
+                 "tree": status["state"], "mode": "tree" if object_fn else "exact",
+                 "processes": procs}
         self._write(scene, view_layer, color, traced, angle, w, h, stats)
         self.update_stats("", f"RI-Tree Preview | traced {100 * frac_traced:.1f}% of "
                               f"{hits} object pixels | object {obj_time:.2f} s | render "

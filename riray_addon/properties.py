@@ -137,6 +137,10 @@ class RIRAY_PG_scene(bpy.types.PropertyGroup):
     allow_tracing: BoolProperty(name="Trace without tree", default=True,
                                 description="Trace the object exactly when it has no RI-Tree or "
                                             "the tree is stale (else the render fails)")
+    render_processes: IntProperty(name="Processes", default=0, min=0, max=256,
+                                  description="Worker processes for RI-Tree Preview renders "
+                                              "(0: automatic - every core on Linux, one "
+                                              "elsewhere, where forking Blender is unsafe)")
     max_events: IntProperty(name="Max events", default=8, min=1, max=64,
                             description="Reflections/refractions followed before a ray becomes "
                                         "the null ray")

@@ -211,6 +211,7 @@ class RIRAY_PT_render(_EnginePanel, bpy.types.Panel):
         layout.use_property_split = True
         layout.prop(s, "target")
         layout.prop(s, "allow_tracing")
+        layout.prop(s, "render_processes")
         layout.prop(s, "max_events")
         from . import engine
         st = engine.LAST_RENDER.get("stats")

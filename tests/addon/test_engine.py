@@ -102,6 +102,27 @@ def test_still_matches_core(bl, tmp_path):
     assert np.abs(again - ref).max() < 1e-12
 
 
+def test_worker_processes_render_the_same_pixels(bl, tmp_path, monkeypatch):
+    """Chunks on two forked worker processes give the in-process frame exactly; the setting's
+    automatic value follows the platform."""
+    bpy = bl.bpy
+    build_scene(bl, tmp_path)
+    scene = bpy.context.scene
+    monkeypatch.setattr(bl.engine, "CHUNK", 300)           # several chunks in a small frame
+    frames = []
+    for procs in (1, 2):
+        scene.riray.render_processes = procs
+        assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+        assert bl.engine.LAST_RENDER["stats"]["processes"] == procs
+        frames.append(bl.engine.LAST_RENDER["image"].copy())
+    assert np.array_equal(frames[0], frames[1]) and frames[0].std() > 0.05
+    assert bl.engine.render_processes(3) == 3
+    import os
+    import sys
+    auto = bl.engine.render_processes(0)
+    assert auto == (os.cpu_count() if sys.platform.startswith("linux") else 1)
+
+
 def test_passes_written_to_multilayer_exr(bl, tmp_path):
     bpy = bl.bpy
     build_scene(bl, tmp_path)
