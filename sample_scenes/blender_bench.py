@@ -76,43 +76,18 @@ def cycles_setup(scene, max_events: int, threads: int):
     s.render.use_persistent_data = False
 
 
-def signed_volume(obj) -> float:
-    """Volume enclosed by the object's evaluated (tessellated) surface, signed by its normals:
-    negative when they point inwards."""
-    dg = bpy.context.evaluated_depsgraph_get()
-    ev = obj.evaluated_get(dg)
-    me = ev.to_mesh()
-    me.calc_loop_triangles()
-    v = np.empty(len(me.vertices) * 3)
-    me.vertices.foreach_get("co", v)
-    t = np.empty(len(me.loop_triangles) * 3, np.int64)
-    me.loop_triangles.foreach_get("vertices", t)
-    ev.to_mesh_clear()
-    v, t = v.reshape(-1, 3), t.reshape(-1, 3)
-    return float(np.einsum("ij,ij->i", v[t[:, 0]], np.cross(v[t[:, 1]], v[t[:, 2]])).sum() / 6)
-
-
 def prepare_object(obj, refractive: bool, resolution: int) -> dict:
-    """Cycles renders the NURBS object from its tessellation: make that fine and smooth-shaded,
-    and for a refractive (closed) object make its normals point outwards, since Cycles decides
-    entering versus leaving from them (riray from the solid itself)."""
+    """Cycles renders the NURBS object from its tessellation: make that fine and smooth-shaded.
+    (build_blend already turned a refractive object's normals outwards, as Cycles needs.)"""
     for sp in obj.data.splines:
         sp.use_smooth = True
     obj.data.resolution_u = obj.data.resolution_v = resolution
     obj.data.render_resolution_u = obj.data.render_resolution_v = resolution
-    info = {"tessellation_per_segment": resolution, "flipped": False}
+    info = {"tessellation_per_segment": resolution}
     if refractive:
-        vol = signed_volume(obj)
-        if vol < 0:
-            bpy.context.view_layer.objects.active = obj
-            obj.select_set(True)
-            bpy.ops.object.mode_set(mode="EDIT")
-            bpy.ops.curve.select_all(action="SELECT")
-            bpy.ops.curve.switch_direction()
-            bpy.ops.object.mode_set(mode="OBJECT")
-            info["flipped"] = True
-            vol = signed_volume(obj)
-        info["volume_m3"] = vol
+        info["volume_m3"] = build_blend.signed_volume(obj)
+        if info["volume_m3"] <= 0:
+            raise RuntimeError(f"{obj.name}: normals still point inwards")
     return info
 
 

@@ -130,10 +130,19 @@ def surface_object(name: str, patches) -> "bpy.types.Object":
     obj = bpy.data.objects.new(name, cu)
     bpy.context.scene.collection.objects.link(obj)
     add_surface_splines(obj, [p.surface.points.shape[:2] for p in patches])
-    for sp, patch in zip(cu.splines, patches):
+    write_splines(obj, patches, reverse_u=False)
+    set_riray(obj, spline_groups=[p.class_id for p in patches])
+    return obj
+
+
+def write_splines(obj, patches, reverse_u: bool) -> None:
+    """Set each spline's order, knot flags and weighted points from its core patch; with
+    ``reverse_u`` the u direction is reversed (the same surface, its normals turned over)."""
+    for sp, patch in zip(obj.data.splines, patches):
         s = patch.surface
         nu, nv = s.points.shape[:2]
-        eu, bu = blender_flags(s.knots_u, s.degree_u, nu)
+        ku = s.knots_u[0] + s.knots_u[-1] - s.knots_u[::-1] if reverse_u else s.knots_u
+        eu, bu = blender_flags(ku, s.degree_u, nu)
         ev, bv = blender_flags(s.knots_v, s.degree_v, nv)
         sp.order_u, sp.order_v = s.degree_u + 1, s.degree_v + 1
         sp.use_endpoint_u, sp.use_bezier_u, sp.use_cyclic_u = eu, bu, False
@@ -141,9 +150,36 @@ def surface_object(name: str, patches) -> "bpy.types.Object":
         sp.resolution_u = sp.resolution_v = SPLINE_RESOLUTION
         sp.use_smooth = True
         co = np.concatenate([s.points, s.weights[..., None]], axis=2)     # [iu, iv, 4]
+        co = co[::-1] if reverse_u else co
         sp.points.foreach_set("co", co.transpose(1, 0, 2).ravel())        # u fastest
-    set_riray(obj, spline_groups=[p.class_id for p in patches])
-    return obj
+    obj.data.update_tag()
+
+
+def signed_volume(obj) -> float:
+    """Volume (m^3) enclosed by the object's evaluated (tessellated) surface, signed by its
+    normals: negative when they point inwards."""
+    dg = bpy.context.evaluated_depsgraph_get()
+    ev = obj.evaluated_get(dg)
+    me = ev.to_mesh()
+    me.calc_loop_triangles()
+    v = np.empty(len(me.vertices) * 3)
+    me.vertices.foreach_get("co", v)
+    t = np.empty(len(me.loop_triangles) * 3, np.int64)
+    me.loop_triangles.foreach_get("vertices", t)
+    ev.to_mesh_clear()
+    v, t = v.reshape(-1, 3), t.reshape(-1, 3)
+    return float(np.einsum("ij,ij->i", v[t[:, 0]], np.cross(v[t[:, 1]], v[t[:, 2]])).sum() / 6)
+
+
+def orient_outwards(obj, patches) -> bool:
+    """Turn a closed object's normals outwards (Cycles and EEVEE decide entering versus leaving
+    glass from them; riray follows the solid and does not care). True if it was turned."""
+    bpy.context.view_layer.update()
+    if signed_volume(obj) >= 0:
+        return False
+    write_splines(obj, patches, reverse_u=True)
+    bpy.context.view_layer.update()
+    return True
 
 
 # --------------------------------------------------------------------------- materials
@@ -337,6 +373,8 @@ def build_scene(name: str, core_scene=None):
     scene.name = name
     obj = surface_object(core_scene.object.name, core_scene.object.patches)
     obj.data.materials.append(object_material(core_scene.object.material))
+    if core_scene.object.material.kind != "mirror":
+        orient_outwards(obj, core_scene.object.patches)
     mats = {k: environment_material(m) for k, m in core_scene.materials.items()}
     for mesh in core_scene.meshes:
         mesh_object(mesh, mats[mesh.material])
