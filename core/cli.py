@@ -39,6 +39,7 @@ def _query_options(args):
                         angle_deg=None if args.angle < 0 else args.angle,
                         distance=None if args.distance < 0 else args.distance,
                         threshold_on=args.threshold_on,
+                        threshold_leaves=args.threshold_leaves,
                         null_interp=args.null_rays == "interpolate").validate()
 
 
@@ -55,6 +56,10 @@ def _tree_opts(p):
     p.add_argument("--threshold-on", choices=("samples", "intermediate"), default="samples",
                    help="apply the thresholds among all interpolated samples (the paper, the "
                    "default) or among the four viewpoints' intermediate rays")
+    p.add_argument("--threshold-leaves", choices=("all", "unverified"), default="all",
+                   help="with --threshold-on samples: compare the samples of all direction "
+                   "leaves (the default) or only of leaves at the maximum depth (a shallower "
+                   "leaf passed the bake's midpoint test; fewer mirror rays traced)")
     p.add_argument("--null-rays", choices=("interpolate", "trace"), default="interpolate",
                    help="a ray whose interpolants are all null (trapped) is answered null "
                    "(interpolate, the default) or traced (trace, the paper)")

@@ -58,6 +58,9 @@ class QueryOptions:
     distance: float | None = None      # pairwise distance threshold between output origins
     threshold_on: str = "samples"      # compare all interpolated samples (the paper), or the
                                        # four viewpoints' "intermediate" rays f*(R_VP)
+    threshold_leaves: str = "all"      # samples mode: compare the samples of "all" direction
+                                       # leaves, or of the "unverified" ones only (at the maximum
+                                       # depth: a shallower leaf passed the bake's midpoint test)
     null_interp: bool = True           # a ray whose interpolants (class rules, null rays
                                        # counted) are all null is null; False: traced (the paper)
 
@@ -67,6 +70,9 @@ class QueryOptions:
         if self.threshold_on not in ("intermediate", "samples"):
             raise ValueError("threshold_on must be 'intermediate' or 'samples', "
                              f"got {self.threshold_on!r}")
+        if self.threshold_leaves not in ("unverified", "all"):
+            raise ValueError("threshold_leaves must be 'unverified' or 'all', "
+                             f"got {self.threshold_leaves!r}")
         for name in ("extrapolation", "angle_deg", "distance"):
             val = getattr(self, name)
             if val is not None and not (np.isfinite(val) and val >= 0):
@@ -213,10 +219,16 @@ class TreeQuery:
         vals = np.zeros((m, 4, 6, 12))
         vals[:, :, :4] = tree.samples.gather(flat).reshape(m, 4, 4, 12)
         thr_hit = np.zeros((m, 4), bool)              # DQs whose corners the thresholds cut
+        # the DQs whose samples the thresholds compare: all, or those the bake could not verify
+        # (split to the maximum depth: a shallower leaf's midpoint matched its interpolation)
+        checked = np.ones((m, 4), bool)
+        if opt.threshold_leaves == "unverified":
+            checked = tree.dir_forest.level[leaf] >= tree.params.direction_depth
         if per_sample:
             # direction level: far corners of a DQ are not usable (an outlier is dropped)
             v = vals[:, :, :4].reshape(m, 16, 12)
-            rows, far = far_pairs(v[:, :, 3:6], v[:, :, 0:3], usable.reshape(m, 16), ang, dist)
+            rows, far = far_pairs(v[:, :, 3:6], v[:, :, 0:3],
+                                  (usable & checked[:, :, None]).reshape(m, 16), ang, dist)
             far = far.reshape(-1, 4, 4, 4, 4)
             for k in range(4):
                 usable[rows, k], thr_hit[rows, k] = drop_outlier(
@@ -255,6 +267,7 @@ class TreeQuery:
                 # samples for extras); an extra-sample triangle with a far pair is unusable
                 member = np.concatenate([usable, np.zeros((m, 4, 2), bool)], axis=2)
                 member = np.where(is_extra[:, :, None], w != 0, member) & dq_ok[:, :, None]
+                member &= checked[:, :, None]
                 v = vals.reshape(m, 24, 12)
                 rows, far = far_pairs(v[:, :, 3:6], v[:, :, 0:3], member.reshape(m, 24), ang,
                                       dist)

@@ -1025,3 +1025,32 @@ def test_threshold_on_intermediate_rays_vs_samples(mirror):
     assert interpolated(a_smp).sum() == 0 and np.any(w_smp == WHY_THRESHOLD)
     with pytest.raises(ValueError, match="threshold_on"):
         QueryOptions(threshold_on="pixels").validate()
+
+
+def test_thresholds_spare_leaves_the_bake_verified(mirror):
+    """The plane mirror's f is affine away from its edges, so the bake stops splitting many
+    direction leaves above the maximum depth (each midpoint matched). threshold_leaves=
+    "unverified" leaves those leaves' samples alone: a near-zero threshold still interpolates
+    many rays, exactly. Compared over all leaves (the default), or baked with every leaf forced
+    to the maximum depth (no leaf verified), the same threshold interpolates nothing."""
+    st, tree = mirror
+    leaves = tree.dir_forest.child < 0
+    assert np.any(tree.dir_forest.level[leaves] < MIRROR_PARAMS.direction_depth)
+    o, d = mirror_queries(tree, 5000, 5)
+    tiny = np.degrees(1e-6)
+    spare = QueryOptions(angle_deg=tiny, threshold_leaves="unverified")
+    res, a, _, _ = TreeQuery(tree, st, spare)(o, d)
+    _, a_off, _, _ = TreeQuery(tree, st, QueryOptions(angle_deg=None))(o, d)
+    _, a_all, _, _ = TreeQuery(tree, st, QueryOptions(angle_deg=tiny))(o, d)
+    ok = interpolated(a)
+    assert ok.sum() > 200 and not np.any(ok & ~interpolated(a_off))
+    assert interpolated(a_all).sum() == 0
+    ex = st.object_function(o[ok], d[ok])
+    assert angle_between(res.out_dir[ok], ex.out_dir).max() < ANG32
+    full = bake(st, BakeParams(viewpoint_depth=1, direction_depth=2, min_direction_depth=2,
+                               pad=0.2), workers=1)
+    assert np.all(full.dir_forest.level[full.dir_forest.child < 0] == 2)
+    _, a_full, w_full, _ = TreeQuery(full, st, spare)(o, d)
+    assert interpolated(a_full).sum() == 0 and np.any(w_full == WHY_THRESHOLD)
+    with pytest.raises(ValueError, match="threshold_leaves"):
+        QueryOptions(threshold_leaves="some").validate()
