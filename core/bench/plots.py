@@ -34,12 +34,23 @@ def _plt():
     return plt
 
 
+MINOR_LABEL_SPAN = 30.0   # label minor ticks of a log axis spanning less than this ratio only
+
+
 def _plain(ax, x=False):
-    """Plain numbers (not powers of ten) on a log axis."""
-    from matplotlib.ticker import FormatStrFormatter
+    """Plain numbers (not powers of ten) on a log axis; minor ticks labelled only where the
+    axis is short enough for their labels not to collide."""
+    from matplotlib.ticker import FormatStrFormatter, FuncFormatter
+
+    def minor_for(axis):
+        def fmt(value, _pos):
+            lo, hi = sorted(abs(v) for v in axis.get_view_interval())
+            return f"{value:g}" if lo > 0 and hi / lo < MINOR_LABEL_SPAN else ""
+        return FuncFormatter(fmt)
+
     for axis in ([ax.yaxis, ax.xaxis] if x else [ax.yaxis]):
         axis.set_major_formatter(FormatStrFormatter("%g"))
-        axis.set_minor_formatter(FormatStrFormatter("%g"))
+        axis.set_minor_formatter(minor_for(axis))
 
 
 def pareto_front(points):
