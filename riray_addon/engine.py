@@ -176,9 +176,7 @@ class RirayRenderEngine(bpy.types.RenderEngine):
         except _Cancelled:
             self.report({"WARNING"}, "render cancelled")
             return
-        color = np.concatenate([p[0] for p in parts]) if parts else np.zeros((0, 3))
-        traced = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0, np.float32)
-        angle = np.concatenate([p[2] for p in parts]) if parts else np.zeros(0, np.float32)
+        color, traced, angle = (np.concatenate([p[i] for p in parts]) for i in range(3))
         obj_time = sum(p[3] for p in parts)
         hits = sum(p[4] for p in parts)
         traced_hits = int(traced.sum())

@@ -171,15 +171,13 @@ def signed_volume(obj) -> float:
     return float(np.einsum("ij,ij->i", v[t[:, 0]], np.cross(v[t[:, 1]], v[t[:, 2]])).sum() / 6)
 
 
-def orient_outwards(obj, patches) -> bool:
+def orient_outwards(obj, patches) -> None:
     """Turn a closed object's normals outwards (Cycles and EEVEE decide entering versus leaving
-    glass from them; riray follows the solid and does not care). True if it was turned."""
+    glass from them; riray follows the solid and does not care)."""
     bpy.context.view_layer.update()
-    if signed_volume(obj) >= 0:
-        return False
-    write_splines(obj, patches, reverse_u=True)
-    bpy.context.view_layer.update()
-    return True
+    if signed_volume(obj) < 0:
+        write_splines(obj, patches, reverse_u=True)
+        bpy.context.view_layer.update()
 
 
 # --------------------------------------------------------------------------- materials

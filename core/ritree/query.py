@@ -222,7 +222,7 @@ class TreeQuery:
         # the DQs whose samples the thresholds compare: all, or those the bake could not verify
         # (split to the maximum depth: a shallower leaf's midpoint matched its interpolation)
         checked = np.ones((m, 4), bool)
-        if opt.threshold_leaves == "unverified":
+        if per_sample and opt.threshold_leaves == "unverified":
             checked = tree.dir_forest.level[leaf] >= tree.params.direction_depth
         if per_sample:
             # direction level: far corners of a DQ are not usable (an outlier is dropped)

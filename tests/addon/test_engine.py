@@ -109,11 +109,21 @@ def test_worker_processes_render_the_same_pixels(bl, tmp_path, monkeypatch):
     build_scene(bl, tmp_path)
     scene = bpy.context.scene
     monkeypatch.setattr(bl.engine, "CHUNK", 300)           # several chunks in a small frame
+    calls = []
+    real_map = bl.engine.map_chunks
+
+    def recording_map(fn, n, chunk, workers, progress):
+        calls.append((n, chunk, workers))
+        return real_map(fn, n, chunk, workers, progress)
+
+    monkeypatch.setattr(bl.engine, "map_chunks", recording_map)
     frames = []
     for procs in (1, 2):
         scene.riray.render_processes = procs
         assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
         assert bl.engine.LAST_RENDER["stats"]["processes"] == procs
+        n, chunk, workers = calls[-1]
+        assert workers == procs and n > 2 * chunk             # the pool really gets chunks
         frames.append(bl.engine.LAST_RENDER["image"].copy())
     assert np.array_equal(frames[0], frames[1]) and frames[0].std() > 0.05
     assert bl.engine.render_processes(3) == 3
