@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 
 import numpy as np
 import pytest
@@ -83,11 +84,54 @@ def test_sample_builds_validates_and_round_trips(name, scenes, tmp_path):
     assert all(not p.is_mesh for p in scene.object.patches)
 
 
+# sin, cos and matmul may differ in the last bit between CPUs and numpy builds, so a freshly
+# built scene matches its shipped file to a few ulps, not bit for bit; a real change of the
+# builder moves numbers by far more than this.
+BUILD_RTOL = BUILD_ATOL = 1e-12
+
+
+def assert_close_tree(got, want, path="scene"):
+    """Equal JSON-like trees: same keys, lengths, types and non-float values; floats within
+    BUILD_RTOL / BUILD_ATOL."""
+    assert type(got) is type(want), f"{path}: {type(got).__name__} != {type(want).__name__}"
+    if isinstance(want, dict):
+        assert list(got) == list(want), f"{path}: keys {list(got)} != {list(want)}"
+        for k in want:
+            assert_close_tree(got[k], want[k], f"{path}.{k}")
+    elif isinstance(want, list):
+        assert len(got) == len(want), f"{path}: length {len(got)} != {len(want)}"
+        for i, (g, w) in enumerate(zip(got, want)):
+            assert_close_tree(g, w, f"{path}[{i}]")
+    elif isinstance(want, float):
+        assert math.isclose(got, want, rel_tol=BUILD_RTOL, abs_tol=BUILD_ATOL), \
+            f"{path}: {got!r} != {want!r}"
+    else:
+        assert got == want, f"{path}: {got!r} != {want!r}"
+
+
 @pytest.mark.parametrize("name", samples.SAMPLES)
 def test_shipped_file_matches_build(name, scenes):
-    """sample_scenes/<name>.json is what build() makes (rerun build_scenes.py if not)."""
+    """sample_scenes/<name>.json is what build() makes (rerun build_scenes.py if not), up to
+    last-bit differences of the machine's floating point."""
     path = samples.sample_path(name)
-    assert scene_to_dict(load_scene(path)) == scene_to_dict(scenes[name])
+    assert_close_tree(scene_to_dict(load_scene(path)), scene_to_dict(scenes[name]))
+
+
+def test_close_tree_catches_real_differences(scenes):
+    d = scene_to_dict(scenes["bowl"])
+    ulp = json.loads(json.dumps(d))
+    m = ulp["cameras"][0]["matrix_world"]
+    m[0][0] = math.nextafter(m[0][0], 2.0)
+    assert_close_tree(ulp, d)                            # an ulp is tolerated
+    for edit in (lambda e: e["cameras"][0]["matrix_world"][0].__setitem__(0, m[0][0] + 1e-9),
+                 lambda e: e["object"]["patches"].pop(),
+                 lambda e: e["render"].__setitem__("width", 301),
+                 lambda e: e["object"]["material"].__setitem__("kind", "glass"),
+                 lambda e: e["render"].__setitem__("width", 300.0)):
+        bad = json.loads(json.dumps(d))
+        edit(bad)
+        with pytest.raises(AssertionError):
+            assert_close_tree(bad, d)
 
 
 def test_default_materials(scenes):
