@@ -177,6 +177,9 @@ def _load_rays(path):
 
 def cmd_trace_rays(args):
     from .render.exact import SceneTracer
+    if args.inside and args.tree:
+        raise ValueError("--inside cannot be combined with --tree (the RI-Tree answers rays "
+                         "that enter the object from outside)")
     scene = _load(args.scene)
     rays = _load_rays(args.rays)
     d = rays[:, 3:]
@@ -191,12 +194,19 @@ def cmd_trace_rays(args):
         extra = {"answer": answers, "traced_because": why}
     else:
         from .parallel import map_chunks
-        from .trace.objectfn import ObjectRays
+        from .trace.objectfn import ObjectRays, trace_object
         o, u = rays[:, :3], d / ln[:, None]
-        parts = map_chunks(lambda a, b: st.object_function(o[a:b], u[a:b]), len(rays),
-                           RAY_CHUNK, args.workers, None if args.quiet else _progress("trace"))
+
+        def f(a, b):
+            if not args.inside:
+                return st.object_function(o[a:b], u[a:b])
+            return trace_object(st.tracer, scene.object.material, o[a:b], u[a:b],
+                                scene.render.max_events, inside=np.ones(b - a, bool))
+
+        parts = map_chunks(f, len(rays), RAY_CHUNK, args.workers,
+                           None if args.quiet else _progress("trace"))
         out = ObjectRays(**{k: np.concatenate([p.__dict__[k] for p in parts])
-                            for k in parts[0].__dict__}) if parts else st.object_function(o, u)
+                            for k in parts[0].__dict__}) if parts else f(0, 0)
     np.savez_compressed(args.out, **{k: v for k, v in out.__dict__.items()}, **extra)
     print(f"{args.out}: {len(rays)} rays, {int(out.hit.sum())} hit the object, "
           f"{int(out.null.sum())} null")
@@ -317,6 +327,9 @@ def build_parser():
     p.add_argument("--out", required=True, help="output .npz (the suffix is added if missing)")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--inside", action="store_true",
+                   help="every ray starts inside the object's glass (default: every ray starts "
+                   "outside the object); refraction then leaves the glass first")
     p.add_argument("--tree", default=None, help="answer through this baked RI-Tree (.rit); "
                    "adds arrays 'answer' and 'traced_because'")
     _tree_opts(p)

@@ -319,8 +319,9 @@ class PatchTracer:
         ray in one flat net need a grazing ray (the net's normal cone bounds how far the surface
         turns), and the twin lies about one chord length 2 |cos| / curvature along the ray:
         behind a found root (a nearer hit), ahead of a root at the ray's own start (t <= tmin:
-        the next hit of a ray leaving the surface). Returns the mask of pairs whose root is
-        grazing (their net may hold a second root)."""
+        the next hit of a ray leaving the surface). A root counts as the ray's start, not a hit,
+        when the surface crossing it stands for lies at or before tmin (``_crossing_behind``).
+        Returns the mask of pairs whose root is grazing (their net may hold a second root)."""
         s_sub = box[:, 0] + (box[:, 1] - box[:, 0]) * s
         t_sub = box[:, 2] + (box[:, 3] - box[:, 2]) * t
         ps = grp.ps0[sp] + (grp.ps1[sp] - grp.ps0[sp]) * s_sub
@@ -340,7 +341,15 @@ class PatchTracer:
         ln = np.linalg.norm(nrm, axis=1)
         un = nrm / np.maximum(ln, 1e-300)[:, None]
         cos = np.einsum("ij,ij->i", un, dd)
-        cand = np.flatnonzero((tt > tmin[rr]) & (tt < best_t[rr]))
+        start = tt <= tmin[rr]
+        # |g| <= tol for a converged root, so only these may stand for a crossing behind tmin
+        near = np.flatnonzero(~start & (2.0 * NEWTON_TOL_REL * self.diag
+                                        >= (tt - tmin[rr]) * np.abs(cos)))
+        if len(near):
+            start[near] = _crossing_behind(o[rr[near]], dd[near], tt[near], tmin[rr[near]],
+                                           P[near], Ps[near], Pt[near], Pss[near], Pst[near],
+                                           Ptt[near], un[near], cos[near])
+        cand = np.flatnonzero(~start & (tt < best_t[rr]))
         order = cand[np.lexsort((tt[cand], rr[cand]))]
         first = order[np.r_[True, rr[order][1:] != rr[order][:-1]]] if len(order) else order
         self._record(res, best_t, grp, sp[good[first]], rr[first], tt[first], P[first],
@@ -357,7 +366,7 @@ class PatchTracer:
         curv = np.abs(np.einsum("ij,ij->i", un[g], a[:, None] ** 2 * Pss[g]
                                 + 2 * (a * b)[:, None] * Pst[g] + b[:, None] ** 2 * Ptt[g]))
         chord = 2.0 * np.abs(cos[g]) / np.maximum(curv, 1e-300)
-        chord *= np.where(tt[g] > tmin[rr[g]], -1.0, 1.0)
+        chord *= np.where(start[g], 1.0, -1.0)
         # a seed far outside the net means the twin is elsewhere (another net finds it)
         s2 = s[good[g]] + chord * a
         t2 = t[good[g]] + chord * b
@@ -481,6 +490,34 @@ def _seed(ctrl, ro, rd):
         t = np.where(hit, np.clip(lt, 0.0, 1.0), t)
         found |= hit
     return s, t
+
+
+def _crossing_behind(o, d, tt, tmin, P, Ps, Pt, Pss, Pst, Ptt, un, cos):
+    """Whether each root P (at distance tt > tmin along its ray) stands for a surface crossing
+    at or before tmin: the ray's own start re-found, not a new hit.
+
+    Newton accepts any point within tolerance of the ray, and a ray leaving the surface at a
+    small angle a stays that close to it for about tol / a. The crossing a root stands for is
+    the zero nearest P of the ray's height above the surface, to second order in the distance
+    tau from P along the ray: h(tau) = g + c tau - k (1 - c^2) tau^2 / 2 (g the height at P
+    along the unit normal n, c = d . n, k = n . S'' the normal curvature along the ray's
+    tangent-plane direction); where h has no zero, its minimum. A departure root's model
+    passes through the departure point, a genuine hit's through P. Since |tau| <= 2|g| / |c|
+    and |g| <= tol, callers pass only roots with 2 tol >= (tt - tmin)|c|."""
+    c = cos
+    g = np.einsum("ij,ij->i", o + tt[:, None] * d - P, un)
+    w = d - c[:, None] * un
+    w /= np.maximum(np.linalg.norm(w, axis=1), 1e-300)[:, None]
+    a, b = _tangent_coords(Ps, Pt, w)
+    k = np.einsum("ij,ij->i", un, a[:, None] ** 2 * Pss + 2 * (a * b)[:, None] * Pst
+                  + b[:, None] ** 2 * Ptt)
+    q = -k * (1.0 - c * c)                       # h''
+    disc = c * c - 2.0 * q * g
+    den = c + np.copysign(np.sqrt(np.maximum(disc, 0.0)), c)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tau = np.where(disc >= 0.0, -2.0 * g / den, -c / q)
+    tau = np.where(np.isfinite(tau), tau, 0.0)   # c = 0 with g = 0 or h'' = 0: P itself
+    return tt + tau <= tmin
 
 
 def _tangent_coords(Ps, Pt, w):

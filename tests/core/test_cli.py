@@ -174,6 +174,33 @@ def test_trace_rays_null_rays_have_zero_direction(files, tmp_path, capsys):
     assert np.allclose(ln[~z["null"]], 1.0)
 
 
+def test_trace_rays_inside(files, tmp_path, capsys):
+    """--inside: rays from inside the glass sphere leave it at the first hit by Snell's law
+    (n = 1.5 -> 1), or are trapped by total internal reflection beyond the critical angle
+    (null after max_events); without it the same rows are taken as entering the glass."""
+    c, r, ior = _sphere_centre(), GLASS_SPHERE_RADIUS, 1.5
+    theta = np.radians([20.0, 60.0])                   # incidence; critical angle 41.8 deg
+    rays = np.array([[*(c + (0, 0, r * np.sin(a))), 1.0, 0, 0] for a in theta])
+    np.save(tmp_path / "in.npy", rays)
+    argv = ["trace-rays", str(files / "sphere.json"), "--rays", str(tmp_path / "in.npy"),
+            "--workers", "1", "--quiet"]
+    assert main([*argv, "--out", str(tmp_path / "in.npz"), "--inside"]) == 0
+    assert main([*argv, "--out", str(tmp_path / "out.npz")]) == 0
+    capsys.readouterr()
+    z, z_out = np.load(tmp_path / "in.npz"), np.load(tmp_path / "out.npz")
+    n = np.array([np.cos(theta[0]), 0, np.sin(theta[0])])           # outward normal at the hit
+    cos_t = np.sqrt(1 - ior ** 2 * np.sin(theta[0]) ** 2)
+    want = ior * np.array([1.0, 0, 0]) + (cos_t - ior * np.cos(theta[0])) * n
+    assert z["events"][0] == 1 and not z["null"][0]
+    assert np.allclose(z["out_origin"][0], c + r * n, atol=1e-9)
+    assert np.allclose(z["out_dir"][0], want, atol=1e-9)
+    assert z["null"][1] and z["events"][1] == load_scene(files / "sphere.json").render.max_events
+    assert not np.allclose(z_out["out_dir"][0], want, atol=1e-3)
+    rc = main([*argv, "--out", str(tmp_path / "t.npz"), "--inside", "--tree", "x.rit"])
+    assert rc == 2
+    _one_line_error(capsys.readouterr().err, "trace-rays")
+
+
 def _bad_rays(tmp_path):
     ok = _crafted_rays()
     nan = ok.copy()

@@ -7,7 +7,7 @@ import pytest
 from riray.geometry.primitives import bilinear, box_faces, sphere
 from riray.scene.model import ObjectMaterial, Patch, SpecularObject
 from riray.trace.objectfn import trace_object
-from riray.trace.patches import PatchTracer
+from riray.trace.patches import NEWTON_TOL_REL, PatchTracer
 
 R = 1.3
 C = np.array([0.2, -0.1, 0.4])
@@ -288,3 +288,62 @@ def test_dielectric_splits_with_exact_fresnel(sphere_tracer):
     assert abs(head_on.fresnel[0] - ((ior - 1) / (ior + 1)) ** 2) < 1e-12
     # mirror and glass never compute Fresnel
     assert np.all(gla.fresnel == 0) and np.all(gla.refl_dir == 0)
+
+
+# Newton accepts a root within NEWTON_TOL_REL * diag of the ray, so each event answers for a ray
+# displaced by up to that much. Near tangency f is ill-conditioned in the impact parameter p
+# (the incidence angle moves by dp / sqrt(2 R (R - p))), so the closed form is taken over the
+# band p +- GRAZE_BAND * tol: one tol for the entry, one for the exit, doubled for safety.
+GRAZE_BAND = 4.0
+GRAZE_SLACK = 1e-9          # rad: the tracer's accuracy on well-conditioned rays (see above)
+
+
+@pytest.mark.parametrize("kind", ["mirror", "glass"])
+def test_grazing_rays_against_closed_form(sphere_tracer, kind):
+    """Impact parameters p = R (1 - eps), eps from 1e-3 down to 1e-12: one reflection, or an
+    entry and an exit refraction, as the closed form says; never an extra event just after the
+    ray leaves the surface (a root within tolerance of the departure point). Rays within the
+    tolerance band of tangency may also miss."""
+    rng = np.random.default_rng(8)
+    eps = np.repeat(np.logspace(-3, -12, 28), 6)
+    n = len(eps)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    perp = np.cross(d, rng.normal(size=(n, 3)))
+    perp /= np.linalg.norm(perp, axis=1)[:, None]
+    band = GRAZE_BAND * NEWTON_TOL_REL * sphere_tracer.diag
+
+    def closed_form(p):
+        return analytic_f(C - 4 * R * d + p[:, None] * perp, d, kind, 1.5)
+
+    p = R * (1 - eps)
+    o = C - 4 * R * d + p[:, None] * perp
+    res = trace_object(sphere_tracer, ObjectMaterial(kind=kind, ior=1.5), o, d)
+    _, _, want, ev, _ = closed_form(p)
+    assert np.all(ev == (1 if kind == "mirror" else 2))
+    spread = np.maximum(angle(closed_form(p - band)[2], want),
+                        angle(closed_form(np.minimum(p + band, R))[2], want))
+    tangent = p + band >= R
+    assert not res.null.any()
+    assert res.hit[~tangent].all()
+    good = res.hit & (res.events == ev) & (angle(res.out_dir, want) <= spread + GRAZE_SLACK)
+    miss = ~res.hit & tangent
+    assert (good | miss).all(), (eps[~(good | miss)], res.events[~(good | miss)])
+
+
+def test_grazing_exit_of_the_issue():
+    """The reported ray on a unit sphere at the origin, 1 - p/r = 2e-9: the mirror reflects
+    once (not twice, y component 2 sqrt(2 eps) instead of ~ -1e-6); glass refracts in and out
+    (not three events and an exit 41 deg off)."""
+    tr = PatchTracer(SpecularObject("s", [Patch("sphere", 0, surface=sphere((0, 0, 0), 1.0))]))
+    eps = 2e-9
+    o, d = np.array([[-3.0, 1 - eps, 0.0]]), np.array([[1.0, 0.0, 0.0]])
+    m = trace_object(tr, ObjectMaterial(kind="mirror"), o, d)
+    assert m.events[0] == 1
+    assert m.out_dir[0, 1] == pytest.approx(2 * np.sqrt(2 * eps), rel=0.1)
+    g = trace_object(tr, ObjectMaterial(kind="glass", ior=1.5), o, d)
+    # closed form: deviation 2 (theta_i - theta_t), theta_i = pi/2 - sqrt(2 eps) to first order
+    th_i = np.arcsin(1 - eps)
+    dev = 2 * (th_i - np.arcsin(np.sin(th_i) / 1.5))
+    assert g.events[0] == 2
+    assert angle(g.out_dir, np.array([[np.cos(dev), -np.sin(dev), 0.0]]))[0] < 1e-3
