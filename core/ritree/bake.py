@@ -327,7 +327,8 @@ class _Baker:
     def refine(self, region) -> bool:
         """One refinement pass: split the viewpoint cells where the region's rays are traced
         for lack of interpolants or by the thresholds; False when nothing is left to split."""
-        from .query import WHY_THRESHOLD, WHY_USABLE, TreeQuery, entry_points
+        from .locate import entry_points
+        from .query import WHY_THRESHOLD, WHY_USABLE, TreeQuery
         tree = self.tree()
         o, d, tmax = region.rays
         _, ans, why, _ = TreeQuery(tree, self.st)(o, d, tmax)

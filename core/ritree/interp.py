@@ -123,25 +123,40 @@ def angle_between(a, b):
     return 2.0 * np.arctan2(np.linalg.norm(a - b, axis=-1), np.linalg.norm(a + b, axis=-1))
 
 
+def _pair_tests(dirs, origins, used, max_angle, max_dist):
+    """Per metric (directions by chord, origins by distance; None: no limit): (points, limit,
+    centroid of the used points (N, 3), unsure (N,)). A row whose used points all lie within
+    limit/2 of their centroid has no far pair (triangle inequality): it is not unsure."""
+    tests = []
+    cnt = np.maximum(used.sum(axis=1), 1)
+    for pts, lim in ((dirs, None if max_angle is None else 2.0 * np.sin(min(max_angle, np.pi) / 2)),
+                     (origins, max_dist)):
+        if lim is None:
+            continue
+        c = np.einsum("nk,nkc->nc", used.astype(np.float64), pts) / cnt[:, None]
+        r = np.where(used, np.linalg.norm(pts - c[:, None, :], axis=2), 0.0).max(axis=1)
+        tests.append((pts, lim, c, r > 0.5 * lim))
+    return tests
+
+
+def may_have_far_pairs(dirs, origins, used, max_angle=None, max_dist=None) -> np.ndarray:
+    """(N,) rows of interpolants (N, K) that may hold a far pair (see ``far_pairs``); a row
+    that may not has none among any subset of its used interpolants either."""
+    used = np.asarray(used, bool)
+    tests = _pair_tests(dirs, origins, used, max_angle, max_dist)
+    return np.any([t[3] for t in tests], axis=0) if tests else np.zeros(len(used), bool)
+
+
 def far_pairs(dirs, origins, used, max_angle=None, max_dist=None):
     """Paper 5.3: the pairs of used interpolants (N, K) whose output directions are more than
     ``max_angle`` radians apart or whose output origins are more than ``max_dist`` apart
     (None: no limit). Returns (rows (R,), far (R, K, K)): only ``rows`` can hold a far pair.
 
-    Directions are compared by chord length (a metric equivalent to the angle). A row whose
-    used points all lie within limit/2 of their centroid has no far pair (triangle
-    inequality) and skips the pairwise test, so smooth rows cost O(K)."""
+    Directions are compared by chord length (a metric equivalent to the angle). Rows whose
+    used points all lie near their centroid skip the pairwise test, so smooth rows cost O(K)."""
     used = np.asarray(used, bool)
     n, k = used.shape
-    tests = []
-    for pts, lim in ((dirs, None if max_angle is None else 2.0 * np.sin(min(max_angle, np.pi) / 2)),
-                     (origins, max_dist)):
-        if lim is None:
-            continue
-        cnt = np.maximum(used.sum(axis=1), 1)
-        c = np.einsum("nk,nkc->nc", used.astype(np.float64), pts) / cnt[:, None]
-        r = np.where(used, np.linalg.norm(pts - c[:, None, :], axis=2), 0.0).max(axis=1)
-        tests.append((pts, lim, c, r > 0.5 * lim))
+    tests = _pair_tests(dirs, origins, used, max_angle, max_dist)
     rows = np.flatnonzero(np.any([t[3] for t in tests], axis=0)) if tests else \
         np.zeros(0, np.int64)
     far = np.zeros((len(rows), k, k), bool)
@@ -153,7 +168,7 @@ def far_pairs(dirs, origins, used, max_angle=None, max_dist=None):
                 continue
             # squared distances by the Gram matrix about the centroid (small coordinates: the
             # rounding of |p|^2 + |q|^2 - 2 p.q stays ~1e-16 of the spread squared)
-            p = pts[sel] - c[sel, None, :]
+            p = (pts[sel] - c[sel, None, :]).astype(np.float64)
             u = used[sel]
             sq = np.einsum("nkc,nkc->nk", p, p)
             d2 = sq[:, :, None] + sq[:, None, :] - 2.0 * np.matmul(p, p.transpose(0, 2, 1))

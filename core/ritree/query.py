@@ -20,17 +20,20 @@ ray and Fresnel weight come from the interpolated normal.
 
 from __future__ import annotations
 
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..trace.boxes import slab_intervals
 from ..trace.objectfn import ObjectRays, fresnel_dielectric, reflect
-from .dircube import SLOT, UV_AXES, dir_to_cube
+from .extras import extra_weights
 from .interp import (BILINEAR, EXTRA, EXTRAPOLATED, FAIL, TRIANGLE, UNIT_CORNERS,
-                     cell_weights, drop_outlier, far_pairs, pick_triangle)
+                     bilinear_weights, cell_weights, drop_outlier, far_pairs, may_have_far_pairs)
+from .locate import Located, locate
 
-QUERY_CHUNK = 16384            # rays per query batch (bounds the (N, 16, 12) gathers)
+# Rays per block of the blend stage: bounds its (rays, 24, 12) float32 sample gather to 38 MB.
+BLEND_BLOCK = 1 << 15
 # Interpolated unit vectors shorter than this before normalization (opposed samples) are not
 # trusted: the ray is traced.
 MIN_BLEND_NORM = 1e-3
@@ -80,381 +83,412 @@ class QueryOptions:
         return self
 
 
-def entry_points(tree, o, d):
-    """Entry distance, face and face coordinates of rays into the tree's padded box.
-    Returns (t_in, face, x, y, inside): inside marks rays starting inside the box."""
-    lo, hi = tree.box_lo, tree.box_hi
-    tnear, tfar = slab_intervals(o, d, lo, hi)
-    ins = (o >= lo) & (o <= hi)
-    axis = np.argmax(tnear, axis=1)
-    rows = np.arange(len(o))
-    tn = tnear[rows, axis]
-    tf = tfar.min(axis=1)
-    inside = np.all(ins, axis=1)
-    t_in = np.where((tn <= tf) & (tf >= 0), np.maximum(tn, 0.0), np.inf)
-    face = 2 * axis + (d[rows, axis] < 0)
-    q = o + np.where(np.isfinite(t_in), t_in, 0.0)[:, None] * d
-    ua = np.array([p[0] for p in UV_AXES])[axis]
-    va = np.array([p[1] for p in UV_AXES])[axis]
-    return t_in, face, q[rows, ua], q[rows, va], inside
+class StageClock:
+    """CPU seconds (this process's CPU clock) spent per named stage of a query."""
+
+    def __init__(self):
+        self.cpu: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, name: str):
+        t0 = time.process_time()
+        try:
+            yield
+        finally:
+            self.cpu[name] = self.cpu.get(name, 0.0) + time.process_time() - t0
+
+
+# Stages whose time is exact tracing the query calls (the rest is the query's own work).
+TRACING_STAGES = ("first_hits", "trace")
+
+
+def group_rows(keys: np.ndarray):
+    """Group the rows of an (m, k) integer array: (group id of each row (m,), index of the
+    first row of each group (G,)); groups are numbered in sorted key order."""
+    m = len(keys)
+    if m == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    order = np.lexsort(keys.T[::-1])
+    sk = keys[order]
+    new = np.ones(m, bool)
+    new[1:] = np.any(sk[1:] != sk[:-1], axis=1)
+    group = np.empty(m, np.int64)
+    group[order] = np.cumsum(new) - 1
+    return group, order[new]
+
+
+def blend(table_vals, sid, w, wd) -> np.ndarray:
+    """Weighted sums of samples: (n, K) sample ids with weights ``w`` for origins, points and
+    normals and ``wd`` for directions (perspective-scaled) -> (n, 12) float64, in blocks of
+    BLEND_BLOCK rays (float32 gather and sums)."""
+    n = len(sid)
+    out = np.empty((n, 12))
+    for a in range(0, n, BLEND_BLOCK):
+        b = min(a + BLEND_BLOCK, n)
+        v = table_vals[sid[a:b]]
+        out[a:b] = np.matmul(w[a:b, None, :].astype(np.float32), v)[:, 0]
+        out[a:b, 3:6] = np.matmul(wd[a:b, None, :].astype(np.float32), v[:, :, 3:6])[:, 0]
+    return out
 
 
 class TreeQuery:
     """Answers batches of rays with a baked tree, tracing exactly (``st``, a SceneTracer) where
-    the tree cannot answer."""
+    the tree cannot answer.
+
+    One call runs a staged pipeline over all its rays (call it with a whole frame, or a
+    worker's share of one): locate -> group rays by sample set -> exact first hits of all
+    two-class rays (one tracer call) -> per (set, class) decisions -> per-ray weights ->
+    blend -> exact tracing of every ray the tree cannot answer (one tracer call). Work that
+    depends only on the 16 samples and the class (class counts, candidate patches, usable
+    corners, whether any pairwise threshold can bite) is done once per set, not per ray."""
 
     def __init__(self, tree, st, options: QueryOptions | None = None):
         self.tree, self.st = tree, st
         self.opt = (options or QueryOptions()).validate()
         self.material = st.scene.object.material
+        self.table = tree.table
 
     def __call__(self, o, d, tmax=None):
-        """(ObjectRays, answers (N,), why (N,), stats) for rays o, d (unit)."""
+        """(ObjectRays, answers (N,), why (N,), stats) for rays o, d (unit). ``stats`` holds
+        ``exact_first_hits`` and the CPU seconds of each stage (``query_<stage>_cpu_s``)."""
+        o = np.asarray(o, np.float64)
+        d = np.asarray(d, np.float64)
         n = len(o)
         tmax = np.full(n, np.inf) if tmax is None else np.asarray(tmax, np.float64)
-        parts = [self._chunk(o[a:a + QUERY_CHUNK], d[a:a + QUERY_CHUNK], tmax[a:a + QUERY_CHUNK])
-                 for a in range(0, n, QUERY_CHUNK)]
-        if not parts:
-            return self._empty_result(0), np.zeros(0, np.int8), np.zeros(0, np.int8), {}
-        res = ObjectRays(**{k: np.concatenate([getattr(p[0], k) for p in parts])
-                            for k in parts[0][0].__dict__})
-        ans = np.concatenate([p[1] for p in parts])
-        why = np.concatenate([p[2] for p in parts])
-        stats = {"exact_first_hits": sum(p[3] for p in parts)}
-        return res, ans, why, stats
-
-    # ------------------------------------------------------------------ one chunk
-    def _chunk(self, o, d, tmax):
-        tree, opt = self.tree, self.opt
-        n = len(o)
+        clock = StageClock()
         ans = np.full(n, MISS, np.int8)
         why = np.zeros(n, np.int8)
-        res = self._empty_result(n, o, d)
-        t_in, face, x, y, inside = entry_points(tree, o, d)
-        enter = np.isfinite(t_in) & (t_in < tmax)
-        ans[inside] = OUTSIDE
-        q = np.flatnonzero(enter & ~inside)
-        # viewpoint cell
-        vnode, alpha, beta = tree.vp_forest.locate(face[q], x[q], y[q])
-        vps = tree.vp_forest.corner[np.maximum(vnode, 0)]
-        cf, u, v = dir_to_cube(d[q])
-        slot = SLOT[face[q], cf]
-        ok = (vnode >= 0) & np.all(vps >= 0, axis=1) & (slot >= 0)
-        trees = vps * 5 + slot[:, None]                                    # (m, 4)
-        trees = np.where(ok[:, None], trees, 0)
-        leaf, lx, ly = tree.dir_forest.locate(trees.ravel(), np.repeat(u, 4), np.repeat(v, 4))
-        leaf, lx, ly = leaf.reshape(-1, 4), lx.reshape(-1, 4), ly.reshape(-1, 4)
-        rect = tree.dir_rect[trees]
-        ok &= np.all(leaf >= 0, axis=1)
-        ok &= np.all((u[:, None] >= rect[..., 0]) & (u[:, None] <= rect[..., 1])
-                     & (v[:, None] >= rect[..., 2]) & (v[:, None] <= rect[..., 3]), axis=1)
-        ids = tree.dir_forest.corner[np.maximum(leaf, 0)]                 # (m, 4, 4)
-        ok &= np.all(ids >= 0, axis=(1, 2))
-        ans[q[~ok]] = OUTSIDE
-        keep = np.flatnonzero(ok)
-        q, alpha, beta, leaf, lx, ly, ids, trees = (
-            a[keep] for a in (q, alpha, beta, leaf, lx, ly, ids, trees))
+        res = _empty_result(n, o, d)
+        with clock("locate"):
+            loc, outside = locate(self.tree, o, d, tmax)
+        ans[outside] = OUTSIDE
         n_exact = 0
-        if len(q):
-            if opt.policy == "raytree":
-                n_exact = self._raytree(o, d, tmax, q, alpha, beta, leaf, trees, lx, ly, ids,
-                                        res, ans, why)
+        if len(loc):
+            if self.opt.policy == "raytree":
+                self._raytree(o, d, tmax, loc, res, ans, why, clock)
             else:
-                n_exact = self._ri(o, d, tmax, q, alpha, beta, leaf, trees, lx, ly, ids, res,
-                                   ans, why)
-        # exact tracing where the tree could not answer
-        tr = np.flatnonzero((ans == TRACED) | (ans == OUTSIDE))
-        if len(tr):
-            ex = self.st.object_function(o[tr], d[tr], tmax[tr])
-            for k, val in ex.__dict__.items():
-                getattr(res, k)[tr] = val
-        return res, ans, why, n_exact
+                n_exact = self._ri(o, d, tmax, loc, res, ans, why, clock)
+        with clock("trace"):
+            tr = np.flatnonzero((ans == TRACED) | (ans == OUTSIDE))
+            if len(tr):
+                ex = self.st.object_function(o[tr], d[tr], tmax[tr])
+                for k, val in ex.__dict__.items():
+                    getattr(res, k)[tr] = val
+        stats = {"exact_first_hits": n_exact,
+                 **{f"query_{k}_cpu_s": v for k, v in clock.cpu.items()}}
+        return res, ans, why, stats
 
-    def _empty_result(self, n, o=None, d=None) -> ObjectRays:
-        o = np.zeros((n, 3)) if o is None else o
-        d = np.zeros((n, 3)) if d is None else d
-        return ObjectRays(hit=np.zeros(n, bool), null=np.zeros(n, bool), out_origin=o.copy(),
-                          out_dir=d.copy(), t_first=np.full(n, np.inf), point=np.zeros((n, 3)),
-                          normal=np.zeros((n, 3)), patch=np.full(n, -1, np.int64),
-                          cls=np.full(n, -1, np.int64), events=np.zeros(n, np.int64),
-                          refl_dir=np.zeros((n, 3)), fresnel=np.zeros(n),
-                          tree=np.zeros(n, np.uint32))
+    # ------------------------------------------------------------------ sample sets
+    def _sets(self, loc: Located):
+        """Group located rays by their four leaves (= their 16 samples): (set of each ray,
+        leaves (S, 4), sample ids (S, 16), sample classes (S, 16), trees (S, 4))."""
+        set_of, first = group_rows(loc.leaf)
+        s_leaf = loc.leaf[first]
+        s_ids = self.tree.dir_forest.corner[s_leaf].reshape(-1, 16)
+        return set_of, s_leaf, s_ids, self.table.cls[s_ids], loc.trees[first]
+
+    def _corner_scale(self, s_leaf, s_trees) -> np.ndarray:
+        """(S, 16) perspective weights of the sets' corner samples (see Forest.cube_scale)."""
+        s = len(s_leaf)
+        return self.tree.dir_forest.cube_scale(
+            s_leaf, s_trees, np.broadcast_to(UNIT_CORNERS[:, 0], (s, 4, 4)),
+            np.broadcast_to(UNIT_CORNERS[:, 1], (s, 4, 4))).reshape(s, 16)
 
     # ------------------------------------------------------------------ the paper's policy
-    def _ri(self, o, d, tmax, q, alpha, beta, leaf, trees, lx, ly, ids, res, ans, why):
-        tree, opt = self.tree, self.opt
-        m = len(q)
-        flat = ids.reshape(m, 16)
-        cls = tree.sample_class(flat)
-        srt = np.sort(cls, axis=1)
-        n_cls = 1 + np.sum(srt[:, 1:] != srt[:, :-1], axis=1)
-        many = n_cls > 2
-        ans[q[many]] = TRACED
-        why[q[many]] = WHY_CLASSES
-        pcls = np.where(n_cls == 1, srt[:, 0], -2)
-        two = np.flatnonzero(n_cls == 2)
-        n_exact = len(two)
+    def _ri(self, o, d, tmax, loc, res, ans, why, clock) -> int:
+        tree, tab, opt = self.tree, self.table, self.opt
+        with clock("group"):
+            set_of, s_leaf, s_ids, s_cls, s_trees = self._sets(loc)
+            srt = np.sort(s_cls, axis=1)
+            n_cls = 1 + np.sum(srt[:, 1:] != srt[:, :-1], axis=1)
+            r_n = n_cls[set_of]
+            rows = loc.ray
+            many = r_n > 2
+            ans[rows[many]] = TRACED
+            why[rows[many]] = WHY_CLASSES
+            pc = np.where(r_n == 1, srt[set_of, 0], -2)
+            two = np.flatnonzero(r_n == 2)
         if len(two):
-            # the exact first hit of the query ray against only the candidate patches
-            pat = tree.samples.patch[flat[two]].astype(np.int64)
-            srt_p = np.sort(pat, axis=1)
-            dup = np.zeros_like(srt_p, bool)
-            dup[:, 1:] = srt_p[:, 1:] == srt_p[:, :-1]
-            cand = np.where(dup | (srt_p < 0), -1, srt_p)
-            hit = self.st.tracer.intersect(o[q[two]], d[q[two]], tmax=tmax[q[two]], patches=cand)
-            pcls[two] = np.where(hit.hit, hit.cls, -1)
-        miss = (pcls == -1) & ~many
-        ans[q[miss]] = MISS
-        go = np.flatnonzero(~many & ~miss)
+            with clock("first_hits"):
+                pc[two] = self._first_hit_class(o, d, tmax, rows[two], set_of[two],
+                                                np.flatnonzero(n_cls == 2), s_ids)
+        ans[rows[pc == -1]] = MISS
+        go = np.flatnonzero(pc >= 0)
         if len(go) == 0:
-            return n_exact
-        q, alpha, beta, leaf, trees, lx, ly, flat, cls, pc = (
-            a[go] for a in (q, alpha, beta, leaf, trees, lx, ly, flat, cls, pcls))
-        m = len(q)
-        usable = ((cls == pc[:, None]) & ~tree.samples.null[flat]).reshape(m, 4, 4)
+            return len(two)
         thresholds = opt.angle_deg is not None or opt.distance is not None
         ang = None if opt.angle_deg is None else np.radians(opt.angle_deg)
         dist = None if opt.distance is None else opt.distance * tree.diag
         per_sample = thresholds and opt.threshold_on == "samples"
-        vals = np.zeros((m, 4, 6, 12))
-        vals[:, :, :4] = tree.samples.gather(flat).reshape(m, 4, 4, 12)
-        thr_hit = np.zeros((m, 4), bool)              # DQs whose corners the thresholds cut
-        # the DQs whose samples the thresholds compare: all, or those the bake could not verify
-        # (split to the maximum depth: a shallower leaf's midpoint matched its interpolation)
-        checked = np.ones((m, 4), bool)
-        if per_sample and opt.threshold_leaves == "unverified":
-            checked = tree.dir_forest.level[leaf] >= tree.params.direction_depth
-        if per_sample:
-            # direction level: far corners of a DQ are not usable (an outlier is dropped)
-            v = vals[:, :, :4].reshape(m, 16, 12)
-            rows, far = far_pairs(v[:, :, 3:6], v[:, :, 0:3],
-                                  (usable & checked[:, :, None]).reshape(m, 16), ang, dist)
-            far = far.reshape(-1, 4, 4, 4, 4)
-            for k in range(4):
-                usable[rows, k], thr_hit[rows, k] = drop_outlier(
-                    far[:, k, :, k], usable[rows, k], UNIT_CORNERS,
-                    np.stack([lx[rows, k], ly[rows, k]], 1))
-        # direction level: per DQ weights over its corners (plus extra samples)
-        w = np.zeros((m, 4, 6))                                  # 4 corners + up to 2 extras
-        sid = np.zeros((m, 4, 6), np.int64)
-        sid[:, :, :4] = flat.reshape(m, 4, 4)
-        dq_st = np.zeros((m, 4), np.int8)
-        is_extra = np.zeros((m, 4), bool)
-        lpos = np.zeros((m, 4, 6, 2))                           # cell-local sample positions
-        lpos[:, :, :4] = UNIT_CORNERS
-        for k in range(4):
-            wk, sk = cell_weights(usable[:, k], lx[:, k], ly[:, k], opt.extrapolation)
-            w[:, k, :4] = wk
-            dq_st[:, k] = sk
-            fail = np.flatnonzero(sk == FAIL)
-            if len(fail):
-                self._extra(fail, k, leaf, lx, ly, usable, pc, w, sid, dq_st, is_extra, lpos)
-        ex_r, ex_k = np.nonzero(is_extra)
-        if len(ex_r):
-            vals[ex_r, ex_k, 4:] = tree.samples.gather(sid[ex_r, ex_k, 4:])
-        # viewpoint level
-        dq_ok = dq_st != FAIL
-        # perspective-correct directions: weight each output direction by the length of its
-        # sample's direction-cube point (exact for affine ray maps such as a plane mirror)
-        vals_s = vals.copy()
-        vals_s[..., 3:6] *= tree.dir_forest.cube_scale(leaf, trees, lpos[..., 0],
-                                                       lpos[..., 1])[..., None]
-        inter = np.einsum("nkj,nkjc->nkc", w, vals_s)                   # f*(R_VP) per DQ
-        thr_q = np.zeros(m, bool)
-        if thresholds:
+        with clock("decide"):
+            loc, set_of, pc = loc.take(go), set_of[go], pc[go]
+            m = len(loc)
+            unit_of, ufirst = group_rows(np.stack([set_of, pc], axis=1))
+            u_set, u_pc = set_of[ufirst], pc[ufirst]
+            u_ids = s_ids[u_set]
+            u_usable = (s_cls[u_set] == u_pc[:, None]) & ~tab.null[u_ids]          # (U, 16)
+            # the DQs whose samples the thresholds compare: all, or those the bake could not
+            # verify (split to the maximum depth: a shallower leaf's midpoint matched)
+            u_checked = np.ones((len(u_set), 4), bool)
+            if per_sample and opt.threshold_leaves == "unverified":
+                u_checked = tree.dir_forest.level[s_leaf[u_set]] >= tree.params.direction_depth
+            u_far = np.zeros(len(u_set), bool)      # units where some threshold may bite
             if per_sample:
-                # DQs are far apart when any of their interpolants are (the chosen triangle's
-                # samples for extras); an extra-sample triangle with a far pair is unusable
-                member = np.concatenate([usable, np.zeros((m, 4, 2), bool)], axis=2)
-                member = np.where(is_extra[:, :, None], w != 0, member) & dq_ok[:, :, None]
-                member &= checked[:, :, None]
-                v = vals.reshape(m, 24, 12)
-                rows, far = far_pairs(v[:, :, 3:6], v[:, :, 0:3], member.reshape(m, 24), ang,
-                                      dist)
-                blocks = far.reshape(-1, 4, 6, 4, 6).any(axis=4).any(axis=2)   # (R, 4, 4)
-                inner = np.diagonal(blocks, axis1=1, axis2=2)                  # (R, 4)
-                thr_hit[rows] |= inner
-                dq_ok[rows] &= ~inner
-            else:
+                u_far = self._may_be_far(s_leaf[u_set], u_ids, u_usable, u_pc, u_checked, ang,
+                                         dist)
+        with clock("weights"):
+            usable = u_usable[unit_of].reshape(m, 4, 4)
+            checked = u_checked[unit_of]
+            thr_hit = np.zeros((m, 4), bool)            # DQs whose corners the thresholds cut
+            fr = np.flatnonzero(u_far[unit_of])         # rays that need the pairwise tests
+            if len(fr):
+                self._direction_thresholds(fr, unit_of, u_far, u_ids, u_usable, u_checked, loc,
+                                           usable, thr_hit, ang, dist)
+            w = np.zeros((m, 4, 6))                          # 4 corners + up to 2 extras
+            sid = np.zeros((m, 4, 6), np.int64)
+            sid[:, :, :4] = u_ids[unit_of].reshape(m, 4, 4)
+            dq_st = np.zeros((m, 4), np.int8)
+            is_extra = np.zeros((m, 4), bool)
+            ex_pos = np.zeros((m, 4, 2, 2))
+            for k in range(4):
+                wk, sk = cell_weights(usable[:, k], loc.lx[:, k], loc.ly[:, k], opt.extrapolation)
+                w[:, k, :4] = wk
+                dq_st[:, k] = sk
+                fail = np.flatnonzero(sk == FAIL)
+                if len(fail):
+                    ea = extra_weights(tree, tab, loc.leaf[fail, k], loc.lx[fail, k],
+                                       loc.ly[fail, k], usable[fail, k], pc[fail],
+                                       opt.extrapolation)
+                    g = fail[ea.rows]
+                    w[g, k] = ea.w
+                    sid[g, k, 4:] = ea.ids
+                    ex_pos[g, k] = ea.pos
+                    dq_st[g, k] = np.where(ea.extrapolated, EXTRAPOLATED, EXTRA)
+                    is_extra[g, k] = True
+            # viewpoint level
+            dq_ok = dq_st != FAIL
+            thr_q = np.zeros(m, bool)
+            scale = None
+            if per_sample and len(fr):
+                self._viewpoint_thresholds(fr, usable, w, sid, is_extra, dq_ok, checked, loc,
+                                           thr_hit, thr_q, ang, dist)
+            elif thresholds and not per_sample:
                 # the intermediate rays f*(R_VP): parallel query rays from the four viewpoints
+                scale = self._scales(loc, set_of, s_leaf, s_trees, is_extra, ex_pos)
+                inter = blend(tab.vals, sid.reshape(4 * m, 6), w.reshape(4 * m, 6),
+                              (w * scale).reshape(4 * m, 6)).reshape(m, 4, 12)
                 idir = inter[:, :, 3:6] / np.maximum(
                     np.linalg.norm(inter[:, :, 3:6], axis=2), 1e-300)[:, :, None]
-                rows, blocks = far_pairs(idir, inter[:, :, 0:3], dq_ok, ang, dist)
-            dq_ok[rows], thr_q[rows] = drop_outlier(blocks, dq_ok[rows], UNIT_CORNERS,
-                                                    np.stack([alpha[rows], beta[rows]], 1))
-        W, qst = cell_weights(dq_ok, alpha, beta, opt.extrapolation)
-        few = qst == FAIL
-        # too few interpolants because the thresholds cut them: traced "by the threshold"
-        thr = ~(few & (thr_q | np.any(thr_hit & ~dq_ok, axis=1)))
-        few &= thr
-        sid = sid.reshape(m, 24)
-        weights = (W[:, :, None] * w).reshape(m, 24)
-        out = np.einsum("nk,nkc->nc", W, inter)
-        od, nm = out[:, 3:6], out[:, 9:12]
-        lod, lnm = np.linalg.norm(od, axis=1), np.linalg.norm(nm, axis=1)
-        blend = (lod > MIN_BLEND_NORM) & (lnm > MIN_BLEND_NORM)
-        good = ~few & thr & blend
-        kind = np.maximum(dq_st.max(axis=1, where=dq_ok, initial=BILINEAR), qst)
-        code = np.select([kind == BILINEAR, kind == TRIANGLE, kind == EXTRA, kind == EXTRAPOLATED],
-                         [FULL, REDUCED, EXTRA_S, EXTRAPOLATED_S], TRACED)
-        ans[q] = np.where(good, code, TRACED)
-        why[q] = np.select([few, ~thr, ~blend], [WHY_USABLE, WHY_THRESHOLD, WHY_BLEND], 0)
-        g = np.flatnonzero(good)
-        self._fill(res, ans, q[g], o, d, tmax, out[g, 0:3], od[g] / lod[g, None], out[g, 6:9],
-                   nm[g] / lnm[g, None], pc[g], self._patch_of(sid[g], weights[g]))
-        if opt.null_interp:
-            nul = tree.samples.null[flat]
-            r = np.flatnonzero(few & np.any(nul & (cls == pc[:, None]), axis=1))
-            if len(r):
-                self._null(r, o, d, tmax, q, alpha, beta, lx, ly, flat, cls, pc, nul, res,
-                           ans, why)
-        return n_exact
+                r2, blocks = far_pairs(idir, inter[:, :, 0:3], dq_ok, ang, dist)
+                dq_ok[r2], thr_q[r2] = drop_outlier(blocks, dq_ok[r2], UNIT_CORNERS,
+                                                    np.stack([loc.alpha[r2], loc.beta[r2]], 1))
+            W, qst = cell_weights(dq_ok, loc.alpha, loc.beta, opt.extrapolation)
+            few = qst == FAIL
+            # too few interpolants because the thresholds cut them: traced "by the threshold"
+            thr = ~(few & (thr_q | np.any(thr_hit & ~dq_ok, axis=1)))
+            few &= thr
+        with clock("blend"):
+            cand = np.flatnonzero(~few & thr)
+            weights = (W[cand, :, None] * w[cand]).reshape(len(cand), 24)
+            if scale is None:
+                scale = self._scales(loc.take(cand), set_of[cand], s_leaf, s_trees,
+                                     is_extra[cand], ex_pos[cand])
+            else:
+                scale = scale[cand]
+            out = self._blend_rows(sid[cand].reshape(len(cand), 24), weights,
+                                   scale.reshape(len(cand), 24), is_extra[cand].any(axis=1))
+            od, nm = out[:, 3:6], out[:, 9:12]
+            lod, lnm = np.linalg.norm(od, axis=1), np.linalg.norm(nm, axis=1)
+            blend_ok = np.ones(m, bool)
+            blend_ok[cand] = (lod > MIN_BLEND_NORM) & (lnm > MIN_BLEND_NORM)
+            good = ~few & thr & blend_ok
+            kind = np.maximum(dq_st.max(axis=1, where=dq_ok, initial=BILINEAR), qst)
+            code = np.select([kind == BILINEAR, kind == TRIANGLE, kind == EXTRA,
+                              kind == EXTRAPOLATED], [FULL, REDUCED, EXTRA_S, EXTRAPOLATED_S],
+                             TRACED)
+            rows = loc.ray
+            ans[rows] = np.where(good, code, TRACED)
+            why[rows] = np.select([few, ~thr, ~blend_ok], [WHY_USABLE, WHY_THRESHOLD, WHY_BLEND], 0)
+            gc = good[cand]
+            g = cand[gc]
+            self._fill(res, ans, rows[g], o, d, tmax, out[gc, 0:3], od[gc] / lod[gc, None],
+                       out[gc, 6:9], nm[gc] / lnm[gc, None], pc[g],
+                       self._patch_of(sid[g].reshape(len(g), 24), weights[gc]))
+            if opt.null_interp:
+                flat = sid[:, :, :4].reshape(m, 16)
+                nul = tab.null[flat]
+                r = np.flatnonzero(few & np.any(nul & (tab.cls[flat] == pc[:, None]), axis=1))
+                if len(r):
+                    self._null(loc.take(r), flat[r], pc[r], o, d, tmax, res, ans, why)
+        return len(two)
 
-    def _null(self, r, o, d, tmax, q, alpha, beta, lx, ly, flat, cls, pc, nul, res, ans, why):
-        """Rows ``r`` that had too few usable interpolants: the same interpolation with the
-        null samples of the query's class as the usable ones (null as a state of its own, like
-        a class: four null corners, or three with the query inside their triangle, at both
-        levels). Where it succeeds the query ray is answered null (trapped), with the
-        interpolated first-hit point and normal for its local illumination."""
-        m = len(r)
-        use = ((cls[r] == pc[r, None]) & nul[r]).reshape(m, 4, 4)
+    def _first_hit_class(self, o, d, tmax, rows, set_of, two_sets, s_ids) -> np.ndarray:
+        """Class of the exact first hit (-1: miss) of rays ``rows`` against only the distinct
+        patches of their two-class sets (one tracer call for all of them)."""
+        pat = np.sort(self.table.patch[s_ids[two_sets]].astype(np.int64), axis=1)
+        dup = np.zeros_like(pat, bool)
+        dup[:, 1:] = pat[:, 1:] == pat[:, :-1]
+        cand = np.where(dup | (pat < 0), -1, pat)
+        cand = cand[np.searchsorted(two_sets, set_of)]
+        hit = self.st.tracer.intersect(o[rows], d[rows], tmax=tmax[rows], patches=cand)
+        return np.where(hit.hit, hit.cls, -1)
+
+    def _unit_extras(self, u_leaf, u_pc):
+        """The extra samples of the units' leaves: ids (U, 4, 4) and which are usable for the
+        unit's class (U, 4, 4)."""
+        tree, tab = self.tree, self.table
+        ids = np.zeros(u_leaf.shape + (4,), np.int64)
+        ok = np.zeros(u_leaf.shape + (4,), bool)
+        if len(tree.ex_node):
+            pos = np.minimum(np.searchsorted(tree.ex_node, u_leaf), len(tree.ex_node) - 1)
+            has = tree.ex_node[pos] == u_leaf
+            ids = np.where(has[..., None], tree.ex_ids[pos], 0)
+            ok = has[..., None] & (tab.cls[ids] == u_pc[:, None, None]) & ~tab.null[ids]
+        return ids, ok
+
+    def _may_be_far(self, u_leaf, u_ids, u_usable, u_pc, u_checked, ang, dist) -> np.ndarray:
+        """(U,) units where a pairwise threshold may cut something: the test of far_pairs on
+        everything a ray of the unit can use (checked usable corners and extras); a unit that
+        passes has no far pair among any ray's interpolants."""
+        ex_ids, ex_ok = self._unit_extras(u_leaf, u_pc)
+        u = len(u_ids)
+        ids = np.concatenate([u_ids, ex_ids.reshape(u, 16)], axis=1)
+        used = np.concatenate([u_usable & np.repeat(u_checked, 4, axis=1),
+                               (ex_ok & u_checked[:, :, None]).reshape(u, 16)], axis=1)
+        v = self.table.vals[ids].astype(np.float64)
+        return may_have_far_pairs(v[..., 3:6], v[..., 0:3], used, ang, dist)
+
+    def _direction_thresholds(self, fr, unit_of, u_far, u_ids, u_usable, u_checked, loc,
+                              usable, thr_hit, ang, dist):
+        """Paper 5.3 at the direction level for rays ``fr``: far corners of a DQ are not usable
+        (an outlier is dropped). Far pairs are found once per unit; the outlier dropped depends
+        on where the ray falls in the cell."""
+        fu = np.flatnonzero(u_far)
+        v = self.table.vals[u_ids[fu]].astype(np.float64)
+        used = u_usable[fu] & np.repeat(u_checked[fu], 4, axis=1)
+        rws, far = far_pairs(v[..., 3:6], v[..., 0:3], used, ang, dist)
+        slot = np.full(len(u_far), -1)
+        slot[fu[rws]] = np.arange(len(rws))
+        rr = fr[slot[unit_of[fr]] >= 0]
+        if len(rr) == 0:
+            return
+        f = far[slot[unit_of[rr]]].reshape(-1, 4, 4, 4, 4)
+        for k in range(4):
+            usable[rr, k], thr_hit[rr, k] = drop_outlier(
+                f[:, k, :, k], usable[rr, k], UNIT_CORNERS,
+                np.stack([loc.lx[rr, k], loc.ly[rr, k]], 1))
+
+    def _viewpoint_thresholds(self, fr, usable, w, sid, is_extra, dq_ok, checked, loc, thr_hit,
+                              thr_q, ang, dist):
+        """Paper 5.3 at the viewpoint level for rays ``fr``: DQs are far apart when any of their
+        interpolants are (an extra-sample triangle's samples for extras); a DQ with a far pair
+        inside is unusable, then an outlying DQ is dropped."""
+        n = len(fr)
+        member = np.concatenate([usable[fr], np.zeros((n, 4, 2), bool)], axis=2)
+        member = np.where(is_extra[fr, :, None], w[fr] != 0, member)
+        member &= dq_ok[fr, :, None] & checked[fr, :, None]
+        v = self.table.vals[sid[fr].reshape(n, 24)].astype(np.float64)
+        rws, far = far_pairs(v[..., 3:6], v[..., 0:3], member.reshape(n, 24), ang, dist)
+        blocks = far.reshape(-1, 4, 6, 4, 6).any(axis=4).any(axis=2)          # (R, 4, 4)
+        inner = np.diagonal(blocks, axis1=1, axis2=2)                           # (R, 4)
+        r = fr[rws]
+        thr_hit[r] |= inner
+        dq_ok[r] &= ~inner
+        dq_ok[r], thr_q[r] = drop_outlier(blocks, dq_ok[r], UNIT_CORNERS,
+                                          np.stack([loc.alpha[r], loc.beta[r]], 1))
+
+    def _scales(self, loc, set_of, s_leaf, s_trees, is_extra, ex_pos) -> np.ndarray:
+        """(m, 4, 6) perspective weights of each ray's interpolants: corners once per set,
+        extras per ray."""
+        m = len(loc)
+        scale = np.ones((m, 4, 6))
+        if m == 0:
+            return scale
+        scale[:, :, :4] = self._corner_scale(s_leaf, s_trees)[set_of].reshape(m, 4, 4)
+        r, k = np.nonzero(is_extra)
+        if len(r):
+            scale[r, k, 4:] = self.tree.dir_forest.cube_scale(
+                loc.leaf[r, k], loc.trees[r, k], ex_pos[r, k, :, 0], ex_pos[r, k, :, 1])
+        return scale
+
+    def _blend_rows(self, sid, weights, scale, has_extra) -> np.ndarray:
+        """Blend (n, 24) interpolants; rays without extras blend their 16 corners only."""
+        out = np.empty((len(sid), 12))
+        corners = (np.arange(24) % 6) < 4
+        for sel, cols in ((~has_extra, corners), (has_extra, slice(None))):
+            r = np.flatnonzero(sel)
+            if len(r):
+                wr = weights[r][:, cols]
+                out[r] = blend(self.table.vals, sid[r][:, cols], wr, wr * scale[r][:, cols])
+        return out
+
+    def _null(self, loc, flat, pc, o, d, tmax, res, ans, why):
+        """Rays (``loc``, their 16 sample ids ``flat``) that had too few usable interpolants:
+        the same interpolation with the null samples of the query's class as the usable ones
+        (null as a state of its own, like a class: four null corners, or three with the query
+        inside their triangle, at both levels). Where it succeeds the query ray is answered
+        null (trapped), with the interpolated first-hit point and normal for its local
+        illumination."""
+        tab = self.table
+        m = len(loc)
+        use = ((tab.cls[flat] == pc[:, None]) & tab.null[flat]).reshape(m, 4, 4)
         w = np.zeros((m, 4, 4))
         st = np.zeros((m, 4), np.int8)
         for k in range(4):
-            w[:, k], st[:, k] = cell_weights(use[:, k], lx[r, k], ly[r, k])
-        W, qst = cell_weights(st != FAIL, alpha[r], beta[r])
+            w[:, k], st[:, k] = cell_weights(use[:, k], loc.lx[:, k], loc.ly[:, k])
+        W, qst = cell_weights(st != FAIL, loc.alpha, loc.beta)
         weights = (W[:, :, None] * w).reshape(m, 16)
-        ok = qst != FAIL
-        r, weights = r[ok], weights[ok]
-        if len(r) == 0:
+        ok = np.flatnonzero(qst != FAIL)
+        if len(ok) == 0:
             return
-        vals = self.tree.samples.gather(flat[r])                           # (g, 16, 12)
-        pt = np.einsum("nk,nkc->nc", weights, vals[:, :, 6:9])
-        nm = np.einsum("nk,nkc->nc", weights, vals[:, :, 9:12])
+        out = blend(tab.vals, flat[ok], weights[ok], weights[ok])
+        pt, nm = out[:, 6:9], out[:, 9:12]
         ln = np.linalg.norm(nm, axis=1)
         keep = ln > MIN_BLEND_NORM
-        r, weights, pt, nm, ln = r[keep], weights[keep], pt[keep], nm[keep], ln[keep]
-        rows = q[r]
+        ok, pt, nm, ln = ok[keep], pt[keep], nm[keep], ln[keep]
+        rows = loc.ray[ok]
         ans[rows] = NULL_S
         why[rows] = 0
         self._fill(res, ans, rows, o, d, tmax, pt, np.zeros_like(pt), pt, nm / ln[:, None],
-                   pc[r], self._patch_of(flat[r], weights), null=True)
-
-    def _extra(self, fail, k, leaf, lx, ly, usable, pc, w, sid, dq_st, is_extra, lpos):
-        """Direction-level interpolation from the extra samples of one/two-interpolant leaves
-        (paper 4.3, Figure 12) for DQ ``k`` of rows ``fail``."""
-        tree = self.tree
-        lf = leaf[fail, k]
-        pos = np.searchsorted(tree.ex_node, lf)
-        pos = np.minimum(pos, max(len(tree.ex_node) - 1, 0))
-        has = (len(tree.ex_node) > 0) & (tree.ex_node[pos] == lf) if len(tree.ex_node) else \
-            np.zeros(len(fail), bool)
-        rows, pos = fail[has], pos[has]
-        if len(rows) == 0:
-            return
-        kind = tree.ex_kind[pos]
-        exc = tree.ex_corner[pos]
-        exi = tree.ex_ids[pos]
-        exp = tree.ex_pos[pos].astype(np.float64)
-        us = usable[rows, k]
-        ex_use = (tree.sample_class(exi) == pc[rows, None]) & ~tree.samples.null[exi]
-        n = len(rows)
-        # candidate triangles: vertex (slot, position); slots 0..3 corners, 4, 5 extras
-        tri_slot = np.zeros((n, 2, 3), np.int64)
-        tri_pos = np.zeros((n, 2, 3, 2))
-        valid = np.zeros((n, 2), bool)
-        extra_ids = np.zeros((n, 2), np.int64)
-        r = np.arange(n)
-        one = kind == 1
-        L = np.where(one, exc[:, 0], 0)
-        one_ok = one & us[r, L] & (us.sum(1) == 1) & ex_use[:, 0] & ex_use[:, 1]
-        # two-interpolant: the usable pair must be (A1, A2) or (B1, B2)
-        A = exc[:, 0:2].clip(0)
-        B = exc[:, 2:4].clip(0)
-        a_side = (kind == 2) & us[r, A[:, 0]] & us[r, A[:, 1]] & (us.sum(1) == 2) \
-            & ex_use[:, 0] & ex_use[:, 1]
-        b_side = (kind == 2) & us[r, B[:, 0]] & us[r, B[:, 1]] & (us.sum(1) == 2) \
-            & ex_use[:, 2] & ex_use[:, 3]
-        # one-interpolant: triangle (L, v1, v2)
-        tri_slot[one_ok, 0] = np.stack([L[one_ok], np.full(one_ok.sum(), 4),
-                                        np.full(one_ok.sum(), 5)], 1)
-        extra_ids[one_ok] = exi[one_ok][:, 0:2]
-        valid[one_ok, 0] = True
-        for side, (c1, c2), (e1, e2) in ((a_side, (A[:, 0], A[:, 1]), (0, 1)),
-                                         (b_side, (B[:, 0], B[:, 1]), (2, 3))):
-            s_ = np.flatnonzero(side)
-            # T1 = (c1, c2, ea), T2 = (c2, ea, eb), ea on the edge from c1, eb from c2
-            tri_slot[s_, 0] = np.stack([c1[s_], c2[s_], np.full(len(s_), 4)], 1)
-            tri_slot[s_, 1] = np.stack([c2[s_], np.full(len(s_), 4), np.full(len(s_), 5)], 1)
-            extra_ids[s_] = exi[s_][:, [e1, e2]]
-            valid[s_] = True
-        any_ok = valid[:, 0]
-        if not np.any(any_ok):
-            return
-        slot_pos = np.concatenate([np.broadcast_to(UNIT_CORNERS, (n, 4, 2)),
-                                   np.zeros((n, 2, 2))], axis=1)
-        # positions of the extras used by each row
-        e_idx = np.where(one_ok[:, None], [0, 1], np.where(b_side[:, None], [2, 3], [0, 1]))
-        slot_pos[:, 4] = exp[r, e_idx[:, 0]]
-        slot_pos[:, 5] = exp[r, e_idx[:, 1]]
-        tri_pos = slot_pos[r[:, None, None], tri_slot]
-        qpt = np.stack([lx[rows, k], ly[rows, k]], 1)
-        which, lam, st = pick_triangle(qpt, tri_pos, valid, self.opt.extrapolation)
-        st = np.where(any_ok, st, FAIL)
-        good = np.flatnonzero(st != FAIL)
-        if len(good) == 0:
-            return
-        gr = rows[good]
-        slots = tri_slot[good, which[good]]                               # (g, 3)
-        wk = np.zeros((len(good), 6))
-        np.add.at(wk, (np.arange(len(good))[:, None], slots), lam[good])
-        w[gr, k] = wk
-        sid[gr, k, 4:6] = extra_ids[good]
-        lpos[gr, k, 4:6] = slot_pos[good, 4:6]
-        dq_st[gr, k] = np.where(st[good] == EXTRAPOLATED, EXTRAPOLATED, EXTRA)
-        is_extra[gr, k] = True
+                   pc[ok], self._patch_of(flat[ok], weights[ok]), null=True)
 
     # ------------------------------------------------------------------ Bala et al.'s policy
-    def _raytree(self, o, d, tmax, q, alpha, beta, leaf, trees, lx, ly, ids, res, ans, why):
-        tree = self.tree
-        m = len(q)
-        flat = ids.reshape(m, 16)
-        th = tree.samples.tree[flat]
-        cls = tree.sample_class(flat)
-        same = np.all(th == th[:, :1], axis=1) & np.all(cls == cls[:, :1], axis=1) \
-            & ~np.any(tree.samples.null[flat], axis=1)
-        miss = same & (cls[:, 0] == -1)
-        ans[q[miss]] = MISS
-        interp = same & ~miss
-        ans[q[~same]] = TRACED
-        why[q[~same]] = WHY_RAYTREE
-        g = np.flatnonzero(interp)
-        if len(g):
-            wdq = np.stack([np.stack([(1 - lx[g, k]) * (1 - ly[g, k]), lx[g, k] * (1 - ly[g, k]),
-                                      (1 - lx[g, k]) * ly[g, k], lx[g, k] * ly[g, k]], 1)
-                            for k in range(4)], 1)
-            wq = np.stack([(1 - alpha[g]) * (1 - beta[g]), alpha[g] * (1 - beta[g]),
-                           (1 - alpha[g]) * beta[g], alpha[g] * beta[g]], 1)
+    def _raytree(self, o, d, tmax, loc, res, ans, why, clock):
+        """Interpolate (16 samples, bilinear at both levels) only where all 16 samples share
+        one ray tree and class and none is null; trace otherwise. Decided once per set."""
+        tab = self.table
+        with clock("group"):
+            set_of, s_leaf, s_ids, s_cls, s_trees = self._sets(loc)
+            th = tab.tree[s_ids]
+            same = np.all(th == th[:, :1], axis=1) & np.all(s_cls == s_cls[:, :1], axis=1) \
+                & ~np.any(tab.null[s_ids], axis=1)
+            r_same = same[set_of]
+            rows = loc.ray
+            ans[rows[r_same & (s_cls[set_of, 0] == -1)]] = MISS
+            ans[rows[~r_same]] = TRACED
+            why[rows[~r_same]] = WHY_RAYTREE
+        with clock("blend"):
+            g = np.flatnonzero(r_same & (s_cls[set_of, 0] != -1))
+            if len(g) == 0:
+                return
+            wq = bilinear_weights(loc.alpha[g], loc.beta[g])
+            wdq = np.stack([bilinear_weights(loc.lx[g, k], loc.ly[g, k]) for k in range(4)], 1)
             weights = (wq[:, :, None] * wdq).reshape(len(g), 16)
-            vals = tree.samples.gather(flat[g])
-            scale = tree.dir_forest.cube_scale(leaf[g], trees[g], np.broadcast_to(
-                UNIT_CORNERS[:, 0], (len(g), 4, 4)), np.broadcast_to(UNIT_CORNERS[:, 1],
-                                                                   (len(g), 4, 4)))
-            vals[:, :, 3:6] *= scale.reshape(len(g), 16)[:, :, None]
-            out = np.einsum("nk,nkc->nc", weights, vals)
+            sg = set_of[g]
+            out = blend(tab.vals, s_ids[sg], weights,
+                        weights * self._corner_scale(s_leaf, s_trees)[sg])
             od, nm = out[:, 3:6], out[:, 9:12]
-            ans[q[g]] = FULL
-            self._fill(res, ans, q[g], o, d, tmax, out[:, 0:3],
+            ans[rows[g]] = FULL
+            self._fill(res, ans, rows[g], o, d, tmax, out[:, 0:3],
                        od / np.linalg.norm(od, axis=1)[:, None], out[:, 6:9],
-                       nm / np.linalg.norm(nm, axis=1)[:, None], cls[g, 0],
-                       tree.samples.patch[flat[g, 0]].astype(np.int64))
-        return 0
+                       nm / np.linalg.norm(nm, axis=1)[:, None], s_cls[sg, 0].astype(np.int64),
+                       tab.patch[s_ids[sg, 0]].astype(np.int64))
 
     # ------------------------------------------------------------------ results
     def _patch_of(self, sid, weights):
         """The patch of the heaviest interpolant (a representative patch id)."""
         best = np.argmax(np.abs(weights), axis=1)
-        return self.tree.samples.patch[sid[np.arange(len(sid)), best]].astype(np.int64)
+        return self.table.patch[sid[np.arange(len(sid)), best]].astype(np.int64)
 
     def _fill(self, res, ans, rows, o, d, tmax, oo, od, pt, nm, cls, patch, null=False):
         dd = d[rows]
@@ -480,3 +514,13 @@ class TreeQuery:
             cos_i = -np.einsum("ij,ij->i", dd, nm)
             res.fresnel[rows] = fresnel_dielectric(cos_i, np.full(len(rows), 1.0 / self.material.ior))
             res.refl_dir[rows] = reflect(dd, nm)
+
+
+def _empty_result(n, o, d) -> ObjectRays:
+    """Misses for every ray (output = input ray), to be filled in by the stages."""
+    return ObjectRays(hit=np.zeros(n, bool), null=np.zeros(n, bool), out_origin=o.copy(),
+                      out_dir=d.copy(), t_first=np.full(n, np.inf), point=np.zeros((n, 3)),
+                      normal=np.zeros((n, 3)), patch=np.full(n, -1, np.int64),
+                      cls=np.full(n, -1, np.int64), events=np.zeros(n, np.int64),
+                      refl_dir=np.zeros((n, 3)), fresnel=np.zeros(n),
+                      tree=np.zeros(n, np.uint32))

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..render.camera import camera_rays
 from .dircube import N_SLOTS, SLOT, UV_AXES, dir_to_cube
-from .query import entry_points
+from .locate import entry_points
 
 
 class Region:

@@ -28,10 +28,10 @@ from riray.ritree import cache
 from riray.ritree.bake import BakeCancelled, bake
 from riray.ritree.dircube import CUBE, DOMAIN, N_SLOTS, SLOT, UV_AXES, cube_to_dir, dir_to_cube
 from riray.ritree.interp import angle_between
+from riray.ritree.locate import entry_points
 from riray.ritree.quadtree import Forest
 from riray.ritree.query import (EXTRAPOLATED_S, FULL, MISS, NULL_S, OUTSIDE, REDUCED, TRACED,
-                                WHY_RAYTREE, WHY_THRESHOLD, WHY_USABLE, QueryOptions, TreeQuery,
-                                entry_points)
+                                WHY_RAYTREE, WHY_THRESHOLD, WHY_USABLE, QueryOptions, TreeQuery)
 from riray.ritree.region import Region
 
 # Interpolation exactness on affine ray maps (mirror, slab) is checked without the pairwise

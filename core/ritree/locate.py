@@ -1,0 +1,86 @@
+"""Locating query rays in the RI-Tree (paper 4.1): box entry -> viewpoint cell -> hemicube
+slot -> the four direction leaves (DQs) whose 16 corner samples answer the ray.
+
+Everything works on whole arrays of rays; the quadtree descents loop over tree levels, never
+over rays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from ..trace.boxes import slab_intervals
+from .dircube import SLOT, UV_AXES, dir_to_cube
+
+_U_AXIS = np.array([p[0] for p in UV_AXES])
+_V_AXIS = np.array([p[1] for p in UV_AXES])
+
+
+def entry_points(tree, o, d):
+    """Entry distance, face and face coordinates of rays into the tree's padded box.
+    Returns (t_in, face, x, y, inside): inside marks rays starting inside the box."""
+    lo, hi = tree.box_lo, tree.box_hi
+    tnear, tfar = slab_intervals(o, d, lo, hi)
+    ins = (o >= lo) & (o <= hi)
+    axis = np.argmax(tnear, axis=1)
+    rows = np.arange(len(o))
+    tn = tnear[rows, axis]
+    tf = tfar.min(axis=1)
+    inside = np.all(ins, axis=1)
+    t_in = np.where((tn <= tf) & (tf >= 0), np.maximum(tn, 0.0), np.inf)
+    face = 2 * axis + (d[rows, axis] < 0)
+    q = o + np.where(np.isfinite(t_in), t_in, 0.0)[:, None] * d
+    return t_in, face, q[rows, _U_AXIS[axis]], q[rows, _V_AXIS[axis]], inside
+
+
+@dataclass
+class Located:
+    """Rays that found their four direction leaves. ``ray`` indexes the query's rays; per DQ
+    k (the viewpoint cell's corners in quadtree corner order): direction tree ``trees[:, k]``,
+    leaf node ``leaf[:, k]`` and the ray's cell-local (lx, ly) in it; (alpha, beta) is the
+    entry point's position in the viewpoint cell, all in [0, 1]."""
+
+    ray: np.ndarray      # (m,) int64
+    alpha: np.ndarray    # (m,)
+    beta: np.ndarray     # (m,)
+    trees: np.ndarray    # (m, 4) int64
+    leaf: np.ndarray     # (m, 4) int64
+    lx: np.ndarray       # (m, 4)
+    ly: np.ndarray       # (m, 4)
+
+    def __len__(self) -> int:
+        return len(self.ray)
+
+    def take(self, idx) -> "Located":
+        """The rows ``idx`` of every field."""
+        return Located(**{f.name: getattr(self, f.name)[idx] for f in fields(self)})
+
+
+def locate(tree, o, d, tmax):
+    """Locate rays (o, d unit, tmax: something in front ends the ray) in ``tree``.
+
+    Returns (located, outside): ``outside`` are the rows the tree cannot answer (the ray
+    starts inside the box, or its viewpoint cell, slot or leaves were not baked); rays that
+    do not enter the box before tmax are in neither (they miss the object)."""
+    t_in, face, x, y, inside = entry_points(tree, o, d)
+    enter = np.isfinite(t_in) & (t_in < tmax)
+    q = np.flatnonzero(enter & ~inside)
+    vnode, alpha, beta = tree.vp_forest.locate(face[q], x[q], y[q])
+    vps = tree.vp_forest.corner[np.maximum(vnode, 0)]
+    cf, u, v = dir_to_cube(d[q])
+    slot = SLOT[face[q], cf]
+    ok = (vnode >= 0) & np.all(vps >= 0, axis=1) & (slot >= 0)
+    trees = np.where(ok[:, None], vps * 5 + slot[:, None], 0)                     # (m, 4)
+    leaf, lx, ly = tree.dir_forest.locate(trees.ravel(), np.repeat(u, 4), np.repeat(v, 4))
+    leaf, lx, ly = leaf.reshape(-1, 4), lx.reshape(-1, 4), ly.reshape(-1, 4)
+    rect = tree.dir_rect[trees]
+    ok &= np.all(leaf >= 0, axis=1)
+    ok &= np.all((u[:, None] >= rect[..., 0]) & (u[:, None] <= rect[..., 1])
+                 & (v[:, None] >= rect[..., 2]) & (v[:, None] <= rect[..., 3]), axis=1)
+    ok &= np.all(tree.dir_forest.corner[np.maximum(leaf, 0)] >= 0, axis=(1, 2))
+    outside = np.concatenate([np.flatnonzero(inside), q[~ok]])
+    k = np.flatnonzero(ok)
+    return Located(ray=q[k], alpha=alpha[k], beta=beta[k], trees=trees[k], leaf=leaf[k],
+                   lx=lx[k], ly=ly[k]), outside
