@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.scene.model import Material, ObjectMaterial, Texture, World
+from . import compat
 
 # Below this the roughness of a specular shader is treated as zero without a report.
 ROUGH_OK = 0.02
@@ -368,7 +369,7 @@ def object_material(mat, report, owner: str = "") -> ObjectMaterial:
         report.warning(f"{owner}: no material; rendered as a mirror")
         return ObjectMaterial(kind="mirror", tint=(1.0, 1.0, 1.0), specular=0.25, shininess=96.0)
     hl = dict(specular=float(mat.riray.specular), shininess=float(mat.riray.shininess))
-    node = _surface_shader(mat.node_tree, ctx)
+    node = _surface_shader(compat.shader_tree(mat), ctx)
     if node is None:
         ctx.warn("no shader connected to the Material Output; rendered as a mirror tinted with "
                  "the viewport colour")
@@ -429,7 +430,7 @@ def environment_material(mat, report, obj, has_uvs: bool = True) -> Material:
         return Material(name="__default__", kind="diffuse",
                         color=Texture(kind="constant", color=DEFAULT_COLOR))
     ctx = _Ctx(report, f"material {mat.name!r}", has_uvs=has_uvs, identity=ident)
-    node = _surface_shader(mat.node_tree, ctx)
+    node = _surface_shader(compat.shader_tree(mat), ctx)
     if node is None:
         return Material(name=mat.name, kind="diffuse",
                         color=Texture(kind="constant", color=_rgb(mat.diffuse_color)))
@@ -469,7 +470,7 @@ def export_world(world, report) -> World:
         return World(kind="color", color=(0.0, 0.0, 0.0))
     ambient = float(world.riray.ambient)
     ctx = _Ctx(report, f"world {world.name!r}")
-    tree = world.node_tree
+    tree = compat.shader_tree(world)
     out = _output_node(tree) if tree is not None else None
     src = _source(out.inputs["Surface"]) if out is not None else None
     if src is None:

@@ -18,7 +18,7 @@ import numpy as np
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from ..core.scene.io import save_scene
-from . import backend, cache
+from . import backend, cache, compat
 from .export import export_camera, export_scene, object_fingerprint
 from .jobs import BakeJob, format_bytes, format_duration
 from .properties import BAKE_KEYS, QUERY_KEYS, bake_params
@@ -184,6 +184,7 @@ class RIRAY_OT_bake(bpy.types.Operator):
     object: StringProperty(name="Object", default="",
                            description="Object to bake (empty: the active object)")
     cache_file: StringProperty(name="Cache file", default="", subtype="FILE_PATH",
+                               options=compat.BLEND_RELATIVE,
                                description="Cache file (empty: the object's setting)")
     wait: BoolProperty(name="Wait", default=True,
                        description="From scripts: block until the bake ends")
@@ -342,7 +343,8 @@ class RIRAY_OT_export_scene(bpy.types.Operator):
     bl_idname = "riray.export_scene"
     bl_label = "Export riray Scene"
 
-    filepath: StringProperty(name="File", subtype="FILE_PATH", default="//riray_scene.json")
+    filepath: StringProperty(name="File", subtype="FILE_PATH", default="//riray_scene.json",
+                             options=compat.BLEND_RELATIVE)
     object: StringProperty(name="Object", default="")
 
     def execute(self, context):

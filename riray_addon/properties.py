@@ -16,6 +16,8 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
                        IntProperty, PointerProperty, StringProperty)
 
+from . import compat
+
 
 def _poll_target(_self, obj) -> bool:
     return obj.type in {"SURFACE", "MESH", "CURVE", "META"}
@@ -89,6 +91,7 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                                               "range (else the current frame only)")
     # ---- cache
     cache_file: StringProperty(name="Cache file", subtype="FILE_PATH", default="",
+                               options=compat.BLEND_RELATIVE,
                                description="RI-Tree cache file; empty: //<blend>.<object>.rit "
                                            "beside the .blend")
     baked_fingerprint: StringProperty(name="Baked fingerprint", default="",
@@ -205,32 +208,56 @@ def spline_group(obj, index: int) -> int:
 
 # --------------------------------------------------------------------------- custom properties
 def adopt_custom_properties() -> int:
-    """Move riray settings that scripts wrote as a custom property ``id["riray"]`` (a dict, e.g.
-    sample_scenes/build_blend.py run without the add-on) into the registered settings. Blender
-    keeps add-on properties apart from custom properties, so they are not picked up by
-    themselves. Returns the number of data-blocks adopted."""
+    """Take over riray settings that scripts wrote as a custom property ``id["riray"]`` (a dict,
+    e.g. sample_scenes/build_blend.py run without the add-on). Returns the number of
+    data-blocks whose settings were adopted or repaired.
+
+    From 5.0 such a dict is a custom property apart from the registered settings: it is copied
+    into them and removed when the data-block has no registered settings stored yet (else it is
+    what Blender keeps of a file saved before 5.0, and the registered copy wins). Before 5.0 the
+    dict *is* the registered storage, so only values stored with a type the property does not
+    read (an enum item's name, an integral float) are written again through the property."""
     n = 0
     for coll in (bpy.data.scenes, bpy.data.objects, bpy.data.materials, bpy.data.worlds):
         for idb in coll:
-            if "riray" not in idb.keys():
-                continue
-            group = idb["riray"]
-            if not hasattr(group, "keys"):
-                continue
-            for key in list(group.keys()):
-                value = group[key]
-                try:
-                    if key == "spline_groups":
-                        idb.riray.spline_groups.clear()
-                        for item in value:
-                            idb.riray.spline_groups.add().group = int(item.get("group", -1))
-                    else:
-                        setattr(idb.riray, key, value)
-                except (AttributeError, TypeError, ValueError) as exc:
-                    print(f"riray: {idb.name}: custom property riray.{key} not adopted ({exc})")
-            del idb["riray"]
-            n += 1
+            legacy = compat.custom_property(idb, "riray")
+            if hasattr(legacy, "keys") and compat.registered_storage(idb, "riray") is None:
+                _assign(idb, legacy.to_dict())
+                del idb["riray"]
+                n += 1
+            stored = compat.registered_storage(idb, "riray")
+            if hasattr(stored, "keys") and _repair(idb, stored):
+                n += 1
     return n
+
+
+def _assign(idb, values: dict) -> None:
+    for key, value in values.items():
+        try:
+            if key == "spline_groups":
+                idb.riray.spline_groups.clear()
+                for item in value:
+                    idb.riray.spline_groups.add().group = int(item.get("group", -1))
+            else:
+                setattr(idb.riray, key, value)
+        except (AttributeError, TypeError, ValueError) as exc:
+            print(f"riray: {idb.name}: custom property riray.{key} not adopted ({exc})")
+
+
+def _repair(idb, stored) -> bool:
+    """Rewrite values in the shared storage that Blender would drop as mistyped."""
+    props = idb.riray.bl_rna.properties
+    bad = {}
+    for key in list(stored.keys()):
+        value, prop = stored[key], props.get(key)
+        if prop is None:
+            continue
+        if (prop.type == "ENUM" and isinstance(value, str)) or \
+                (prop.type == "FLOAT" and isinstance(value, int) and not prop.is_array):
+            bad[key] = value
+            del stored[key]
+    _assign(idb, bad)
+    return bool(bad)
 
 
 @bpy.app.handlers.persistent

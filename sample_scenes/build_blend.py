@@ -59,6 +59,19 @@ from riray.geometry.knots import blender_knots  # noqa: E402
 from riray.scene import samples  # noqa: E402
 
 
+def _load_compat():
+    """riray_addon/compat.py (Blender API differences; needs only bpy), loaded from this
+    checkout whether or not the add-on is installed."""
+    spec = importlib.util.spec_from_file_location("riray_addon_compat",
+                                                  ROOT / "riray_addon" / "compat.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+compat = _load_compat()
+
+
 # --------------------------------------------------------------------------- riray settings
 def set_riray(idblock, **values) -> None:
     """Write riray settings: through the registered property group when the add-on is enabled,
@@ -189,7 +202,7 @@ def _clear(nt, keep_type: str):
 
 
 def object_material(om) -> "bpy.types.Material":
-    m = bpy.data.materials.new(f"riray_{om.kind}")
+    m = compat.new_material(f"riray_{om.kind}")
     nt = m.node_tree
     out = _clear(nt, "OUTPUT_MATERIAL")
     idname = {"mirror": "ShaderNodeBsdfGlossy", "glass": "ShaderNodeBsdfRefraction",
@@ -257,7 +270,7 @@ def _texture_socket(nt, tex):
 
 
 def environment_material(mat) -> "bpy.types.Material":
-    m = bpy.data.materials.new(mat.name)
+    m = compat.new_material(mat.name)
     nt = m.node_tree
     out = _clear(nt, "OUTPUT_MATERIAL")
     if mat.kind == "emission":
@@ -323,7 +336,7 @@ def _matrix(m):
 
 
 def world_block(world):
-    w = bpy.data.worlds.new("riray_world")
+    w = compat.new_world("riray_world")
     nt = w.node_tree
     bg = [n for n in nt.nodes if n.type == "BACKGROUND"][0]
     bg.inputs["Strength"].default_value = world.strength

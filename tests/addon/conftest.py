@@ -69,7 +69,7 @@ def blender(extension_zip, tmp_path_factory):
     addon = importlib.import_module(f"{EXT_PKG}.riray_addon")
     mods = {name: importlib.import_module(f"{EXT_PKG}.riray_addon.{name}")
             for name in ("export", "materials", "engine", "operators", "backend", "jobs",
-                         "cache", "report", "properties", "worker", "ui")}
+                         "cache", "report", "properties", "worker", "ui", "compat")}
 
     def reset():
         """Empty file, factory scene settings kept minimal (the add-on stays enabled)."""

@@ -18,7 +18,7 @@ def build_scene(bl, tmp_path):
     scene = bpy.context.scene
     bpy.ops.surface.primitive_nurbs_surface_sphere_add(radius=0.8, location=(0, 0, 0.2))
     obj = bpy.context.active_object
-    mat = bpy.data.materials.new("chrome")
+    mat = bl.compat.new_material("chrome")
     p = mat.node_tree.nodes["Principled BSDF"]
     p.inputs["Metallic"].default_value = 1.0
     p.inputs["Roughness"].default_value = 0.0
@@ -26,7 +26,7 @@ def build_scene(bl, tmp_path):
     obj.data.materials.append(mat)
     bpy.ops.mesh.primitive_plane_add(size=8, location=(0, 0, -0.7))
     floor = bpy.context.active_object
-    fm = bpy.data.materials.new("floor")
+    fm = bl.compat.new_material("floor")
     nt = fm.node_tree
     chk = nt.nodes.new("ShaderNodeTexChecker")
     chk.inputs["Scale"].default_value = 2.0
@@ -39,7 +39,7 @@ def build_scene(bl, tmp_path):
     wall = bpy.context.active_object
     img = bpy.data.images.new("wallpaper", 4, 4, float_buffer=True)
     img.pixels.foreach_set(np.random.default_rng(3).uniform(0, 1, 64).astype(np.float32))
-    wm = bpy.data.materials.new("wall")
+    wm = bl.compat.new_material("wall")
     tex = wm.node_tree.nodes.new("ShaderNodeTexImage")
     tex.image = img
     wm.node_tree.links.new(tex.outputs["Color"],
@@ -49,7 +49,7 @@ def build_scene(bl, tmp_path):
     bpy.context.active_object.data.energy = 900.0
     bpy.ops.object.camera_add(location=(0, -5, 1.2), rotation=(math.radians(80), 0, 0))
     scene.camera = bpy.context.active_object
-    world = bpy.data.worlds.new("w")
+    world = bl.compat.new_world("w")
     world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.2, 0.3, 0.5, 1)
     world.riray.ambient = 0.5
     scene.world = world
@@ -138,7 +138,7 @@ def test_passes_written_to_multilayer_exr(bl, tmp_path):
     build_scene(bl, tmp_path)
     scene = bpy.context.scene
     bpy.context.view_layer.riray.use_pass_angle_error = True
-    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    bl.compat.set_multilayer_exr(scene.render.image_settings)
     scene.render.filepath = str(tmp_path / "layers.exr")
     assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
     head = (tmp_path / "layers.exr").read_bytes()[:20000]

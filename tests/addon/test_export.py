@@ -179,16 +179,16 @@ def test_bad_objects_give_reports(bl):
         bpy.ops.riray.bake(object="nofaces")
 
 
-def _principled(bpy, name, **inputs):
-    m = bpy.data.materials.new(name)
+def _principled(bl, name, **inputs):
+    m = bl.compat.new_material(name)
     p = m.node_tree.nodes["Principled BSDF"]
     for k, v in inputs.items():
         p.inputs[k].default_value = v
     return m
 
 
-def _shader(bpy, name, idname, **inputs):
-    m = bpy.data.materials.new(name)
+def _shader(bl, name, idname, **inputs):
+    m = bl.compat.new_material(name)
     nt = m.node_tree
     for n in list(nt.nodes):
         if n.type != "OUTPUT_MATERIAL":
@@ -204,35 +204,53 @@ def test_object_material_mapping(bl):
     bpy = bl.bpy
     om = bl.materials.object_material
     rep = bl.report.Report()
-    m = om(_principled(bpy, "metal", **{"Metallic": 1.0, "Roughness": 0.0,
+    m = om(_principled(bl, "metal", **{"Metallic": 1.0, "Roughness": 0.0,
                                          "Base Color": (0.9, 0.8, 0.7, 1)}), rep, "o")
     assert m.kind == "mirror" and np.allclose(m.tint, (0.9, 0.8, 0.7))
-    m = om(_principled(bpy, "glassy", **{"Transmission Weight": 1.0, "IOR": 1.33,
+    m = om(_principled(bl, "glassy", **{"Transmission Weight": 1.0, "IOR": 1.33,
                                           "Roughness": 0.0}), rep, "o")
     assert m.kind == "dielectric" and m.ior == pytest.approx(1.33)
     assert not rep.messages("WARNING")
-    m = om(_shader(bpy, "gl", "ShaderNodeBsdfGlossy", Color=(0.5, 0.6, 0.7, 1), Roughness=0.0),
+    m = om(_shader(bl, "gl", "ShaderNodeBsdfGlossy", Color=(0.5, 0.6, 0.7, 1), Roughness=0.0),
            rep, "o")
     assert m.kind == "mirror" and np.allclose(m.tint, (0.5, 0.6, 0.7))
-    m = om(_shader(bpy, "rf", "ShaderNodeBsdfRefraction", IOR=1.6, Roughness=0.0), rep, "o")
+    m = om(_shader(bl, "rf", "ShaderNodeBsdfRefraction", IOR=1.6, Roughness=0.0), rep, "o")
     assert m.kind == "glass" and m.ior == pytest.approx(1.6)
-    m = om(_shader(bpy, "gs", "ShaderNodeBsdfGlass", IOR=1.45, Roughness=0.0), rep, "o")
+    m = om(_shader(bl, "gs", "ShaderNodeBsdfGlass", IOR=1.45, Roughness=0.0), rep, "o")
     assert m.kind == "dielectric" and m.ior == pytest.approx(1.45)
     assert not rep.messages("WARNING")
     # approximations are reported by name with what was used instead
-    m = om(_principled(bpy, "rough plastic", **{"Roughness": 0.4}), rep, "o")
+    m = om(_principled(bl, "rough plastic", **{"Roughness": 0.4}), rep, "o")
     msgs = " ".join(rep.messages("WARNING"))
     assert m.kind == "mirror" and 0 < m.diffuse < 1
     assert "rough plastic" in msgs and "roughness 0.4 ignored" in msgs
     assert "mirror coat" in msgs
-    m = om(_shader(bpy, "emit", "ShaderNodeEmission"), rep, "o")
+    m = om(_shader(bl, "emit", "ShaderNodeEmission"), rep, "o")
     assert m.kind == "mirror" and "cannot be simulated" in " ".join(rep.messages("WARNING"))
     m = om(None, rep, "obj")
     assert m.kind == "mirror" and "no material" in " ".join(rep.messages())
 
 
-def _tex_material(bpy, name, build):
-    m = bpy.data.materials.new(name)
+def test_material_with_nodes_switched_off(bl):
+    """Before 5.0 a material or world with Use Nodes off renders with its plain colour."""
+    bpy = bl.bpy
+    if bpy.app.version >= (5, 0, 0):
+        pytest.skip("from 5.0 Blender always uses the node tree")
+    m = _principled(bl, "off", **{"Metallic": 1.0, "Base Color": (0.2, 0.4, 0.6, 1)})
+    m.diffuse_color = (0.9, 0.1, 0.1, 1)
+    m.use_nodes = False
+    got = bl.materials.object_material(m, bl.report.Report(), "o")
+    assert got.kind == "mirror" and np.allclose(got.tint, (0.9, 0.1, 0.1))
+    w = bl.compat.new_world("plain")
+    w.node_tree.nodes["Background"].inputs["Color"].default_value = (0.1, 0.2, 0.3, 1)
+    w.color = (0.5, 0.5, 0.25)
+    w.use_nodes = False
+    got = bl.materials.export_world(w, bl.report.Report())
+    assert got.kind == "color" and np.allclose(got.color, (0.5, 0.5, 0.25))
+
+
+def _tex_material(bl, name, build):
+    m = bl.compat.new_material(name)
     nt = m.node_tree
     p = nt.nodes["Principled BSDF"]
     build(nt, p.inputs["Base Color"])
@@ -253,7 +271,7 @@ def test_environment_textures(bl):
         nt.links.new(uv.outputs["UV"], t.inputs["Vector"])
         nt.links.new(t.outputs["Color"], sock)
 
-    mat = em(_tex_material(bpy, "chk", checker), rep, None)
+    mat = em(_tex_material(bl, "chk", checker), rep, None)
     assert mat.kind == "diffuse" and mat.color.kind == "checker" and mat.color.coords == "uv"
     assert mat.color.scale == 4.0
     assert mat.color.color == (0, 0, 1) and mat.color.color2 == (1, 0, 0)    # parity swap
@@ -267,7 +285,7 @@ def test_environment_textures(bl):
         nt.links.new(uv.outputs["UV"], mp.inputs["Vector"])
         nt.links.new(mp.outputs["Vector"], t.inputs["Vector"])
 
-    mat = em(_tex_material(bpy, "str", stripes), rep, None)
+    mat = em(_tex_material(bl, "str", stripes), rep, None)
     assert mat.color.kind == "stripes" and mat.color.axis == 0 and mat.color.scale == 2.0
 
     def gradient(nt, sock):
@@ -284,7 +302,7 @@ def test_environment_textures(bl):
         nt.links.new(mr.outputs["Result"], ramp.inputs[0])
         nt.links.new(ramp.outputs["Color"], sock)
 
-    mat = em(_tex_material(bpy, "grad", gradient), rep, None)
+    mat = em(_tex_material(bl, "grad", gradient), rep, None)
     t = mat.color
     assert (t.kind, t.axis, t.start, t.end, t.coords) == ("gradient", 1, 0.0, 4.0, "uv")
     assert t.color == (1, 1, 0) and t.color2 == (0, 1, 1)
@@ -298,7 +316,7 @@ def test_environment_textures(bl):
         t.image = img
         nt.links.new(t.outputs["Color"], sock)
 
-    mat = em(_tex_material(bpy, "img", image), rep, None)
+    mat = em(_tex_material(bl, "img", image), rep, None)
     assert mat.color.kind == "image" and mat.color.image.shape == (2, 4, 3)
     px = np.linspace(0, 1, 32).reshape(2, 4, 4)[::-1, :, :3]          # top row first
     assert np.allclose(mat.color.image, px, atol=1e-6)
@@ -307,10 +325,10 @@ def test_environment_textures(bl):
         w = nt.nodes.new("ShaderNodeTexWave")
         nt.links.new(w.outputs["Color"], sock)
 
-    mat = em(_tex_material(bpy, "wavy", wave), rep, None)
+    mat = em(_tex_material(bl, "wavy", wave), rep, None)
     assert mat.color.kind == "constant"
     assert "'wavy'" in " ".join(rep.messages("WARNING"))
-    emis = _shader(bpy, "lamp", "ShaderNodeEmission", Strength=3.0)
+    emis = _shader(bl, "lamp", "ShaderNodeEmission", Strength=3.0)
     mat = em(emis, rep, None)
     assert mat.kind == "emission" and mat.strength == 3.0
 
@@ -333,7 +351,7 @@ def test_environment_lights_world_cameras(bl):
     scene.camera = cam
     scene.render.resolution_x, scene.render.resolution_y = 64, 48
     scene.render.resolution_percentage = 50
-    world = bpy.data.worlds.new("sky")
+    world = bl.compat.new_world("sky")
     scene.world = world
     nt = world.node_tree
     bg = nt.nodes["Background"]
