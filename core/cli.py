@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -11,6 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+
+
+_BAR = {"open": False}    # a progress bar is mid-line on stderr (an error message starts anew)
 
 
 def _progress(label):
@@ -22,6 +26,7 @@ def _progress(label):
         eta = el / frac - el if frac > 0 else 0.0
         print(f"\r{label}: {100 * frac:5.1f}%  elapsed {el:6.1f}s  eta {eta:6.1f}s",
               end="" if frac < 1 else "\n", file=sys.stderr, flush=True)
+        _BAR["open"] = frac < 1
     return report
 
 
@@ -149,30 +154,56 @@ def cmd_render(args):
 RAY_CHUNK = 8192   # rays per trace-rays work chunk (progress granularity, memory bound)
 
 
-def _load_rays(path):
-    """An N x 6 float64 ray array from a .npy file; ValueError (one line) unless every row is
-    finite with a non-zero direction."""
-    try:
-        rays = np.load(path, allow_pickle=False)
-    except ValueError as e:
-        raise ValueError(f"{path}: not a .npy array file ({e})") from None
-    if not isinstance(rays, np.ndarray):
-        rays.close()
-        raise ValueError(f"{path}: expected a .npy file holding one array (got an .npz archive)")
-    if rays.dtype.kind not in "fiu":
-        raise ValueError(f"{path}: expected a numeric N x 6 array (got dtype {rays.dtype})")
-    if rays.ndim != 2 or rays.shape[1] != 6:
+def _check_npy_header(path):
+    """ValueError unless the .npy file's header says N x 6 numeric and the file holds that much
+    data: checked before any data is read (a truncated file or a header claiming more rows than
+    the file holds is an error, not an allocation)."""
+    fmt = np.lib.format
+    with open(path, "rb") as f:
+        if f.read(4) == b"PK\x03\x04":
+            raise ValueError(f"{path}: expected a .npy file holding one array (got an .npz "
+                             "archive)")
+        f.seek(0)
+        try:
+            version = fmt.read_magic(f)
+            read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+            shape, _, dtype = read(f)
+        except (ValueError, EOFError) as e:
+            raise ValueError(f"{path}: not a .npy array file ({e})") from None
+        data = os.fstat(f.fileno()).st_size - f.tell()
+    if dtype.kind not in "fiu":
+        raise ValueError(f"{path}: expected a numeric N x 6 array (got dtype {dtype})")
+    if len(shape) != 2 or shape[1] != 6:
         raise ValueError(f"{path}: expected an N x 6 array (origin xyz, direction xyz), "
-                         f"got shape {rays.shape}")
-    rays = rays.astype(np.float64)
+                         f"got shape {shape}")
+    if data < shape[0] * 6 * dtype.itemsize:
+        raise ValueError(f"{path}: truncated: the header says {shape[0]} rows "
+                         f"({shape[0] * 6 * dtype.itemsize} bytes), the file holds {data} bytes")
+
+
+def _load_rays(path):
+    """(origins, unit directions) from an N x 6 .npy file; ValueError (one line) unless every
+    row is finite, with an origin in the scene format's coordinate range and a non-zero
+    direction (of any finite size: normalized without overflow)."""
+    from .scene.io import MAX_COORD
+    _check_npy_header(path)
+    rays = np.load(path, allow_pickle=False).astype(np.float64)
     bad = ~np.isfinite(rays)
     if bad.any():
         i, j = (int(x) for x in np.argwhere(bad)[0])
         raise ValueError(f"{path}: row {i} column {j} is not finite ({rays[i, j]!r})")
-    zero = ~(np.linalg.norm(rays[:, 3:], axis=1) > 0)
+    far = np.abs(rays[:, :3]) > MAX_COORD
+    if far.any():
+        i, j = (int(x) for x in np.argwhere(far)[0])
+        raise ValueError(f"{path}: row {i} column {j}: origin coordinate {rays[i, j]!r} is "
+                         f"outside the supported range +-{MAX_COORD:g} m")
+    d = rays[:, 3:]
+    big = np.abs(d).max(axis=1)
+    zero = ~(big > 0)
     if zero.any():
         raise ValueError(f"{path}: direction of row {int(np.argmax(zero))} is zero")
-    return rays
+    d = d / big[:, None]                    # largest component 1: the norm cannot overflow
+    return rays[:, :3], d / np.linalg.norm(d, axis=1)[:, None]
 
 
 def cmd_trace_rays(args):
@@ -181,21 +212,18 @@ def cmd_trace_rays(args):
         raise ValueError("--inside cannot be combined with --tree (the RI-Tree answers rays "
                          "that enter the object from outside)")
     scene = _load(args.scene)
-    rays = _load_rays(args.rays)
-    d = rays[:, 3:]
-    ln = np.linalg.norm(d, axis=1)
+    o, u = _load_rays(args.rays)
     st = SceneTracer(scene)
     extra = {}
     if args.tree:
         from .ritree import tree as ritree
         from .ritree.query import TreeQuery
         tq = TreeQuery(ritree.load(args.tree, scene), st, _query_options(args))
-        out, answers, why, _ = tq(rays[:, :3], d / ln[:, None])
+        out, answers, why, _ = tq(o, u)
         extra = {"answer": answers, "traced_because": why}
     else:
         from .parallel import map_chunks
         from .trace.objectfn import ObjectRays, trace_object
-        o, u = rays[:, :3], d / ln[:, None]
 
         def f(a, b):
             if not args.inside:
@@ -203,12 +231,12 @@ def cmd_trace_rays(args):
             return trace_object(st.tracer, scene.object.material, o[a:b], u[a:b],
                                 scene.render.max_events, inside=np.ones(b - a, bool))
 
-        parts = map_chunks(f, len(rays), RAY_CHUNK, args.workers,
+        parts = map_chunks(f, len(o), RAY_CHUNK, args.workers,
                            None if args.quiet else _progress("trace"))
         out = ObjectRays(**{k: np.concatenate([p.__dict__[k] for p in parts])
                             for k in parts[0].__dict__}) if parts else f(0, 0)
     np.savez_compressed(args.out, **{k: v for k, v in out.__dict__.items()}, **extra)
-    print(f"{args.out}: {len(rays)} rays, {int(out.hit.sum())} hit the object, "
+    print(f"{args.out}: {len(o)} rays, {int(out.hit.sum())} hit the object, "
           f"{int(out.null.sum())} null")
     return 0
 
@@ -408,13 +436,42 @@ def build_parser():
     return ap
 
 
+def _check_options(args):
+    """Refuse bad worker counts and image sizes before any work (ValueError, one line)."""
+    from .parallel import workers_default
+    from .scene.io import MAX_IMAGE_SIDE
+    if hasattr(args, "workers"):
+        if args.workers is None:
+            workers_default()                       # a bad RIRAY_WORKERS fails here, not later
+        elif args.workers < 1:
+            raise ValueError(f"--workers must be >= 1 (got {args.workers})")
+    for flag in ("width", "height", "size"):
+        v = getattr(args, flag, None)
+        if v is not None and not 1 <= v <= MAX_IMAGE_SIDE:
+            raise ValueError(f"--{flag}: image size must be 1..{MAX_IMAGE_SIDE} pixels (got {v})")
+
+
+def _error(cmd, msg):
+    if _BAR["open"]:
+        print(file=sys.stderr)
+        _BAR["open"] = False
+    print(f"riray {cmd}: {msg}", file=sys.stderr)
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        _check_options(args)
         return args.fn(args)
     except (ValueError, OSError) as e:
-        print(f"riray {args.cmd}: error: {e}", file=sys.stderr)
+        _error(args.cmd, f"error: {e}")
         return 2
+    except MemoryError as e:
+        _error(args.cmd, f"error: out of memory ({str(e) or 'the input is too large'})")
+        return 2
+    except KeyboardInterrupt:
+        _error(args.cmd, "interrupted")
+        return 130
 
 
 if __name__ == "__main__":

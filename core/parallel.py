@@ -8,15 +8,24 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import signal
 from collections.abc import Callable
 
 _TASK: Callable | None = None
 
 
 def workers_default() -> int:
-    env = os.environ.get("RIRAY_WORKERS")
+    """``RIRAY_WORKERS`` if set (a positive integer, else ValueError naming it), else the
+    machine's CPU count."""
+    env = os.environ.get("RIRAY_WORKERS", "").strip()
     if env:
-        return max(1, int(env))
+        try:
+            n = int(env)
+        except ValueError:
+            n = 0
+        if n < 1:
+            raise ValueError(f"RIRAY_WORKERS must be a positive integer (got {env!r})")
+        return n
     return max(1, os.cpu_count() or 1)
 
 
@@ -41,7 +50,9 @@ def map_chunks(fn: Callable, n: int, chunk: int, workers: int | None = None,
         return out
     _TASK = fn
     try:
-        with mp.get_context("fork").Pool(min(workers, len(bounds))) as pool:
+        # workers ignore Ctrl-C: the parent alone handles it (and terminates the pool)
+        with mp.get_context("fork").Pool(min(workers, len(bounds)), signal.signal,
+                                         (signal.SIGINT, signal.SIG_IGN)) as pool:
             for i, r in enumerate(pool.imap(_run, bounds)):
                 out.append(r)
                 if progress:

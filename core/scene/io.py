@@ -25,6 +25,18 @@ FORMAT = "riray-scene"
 VERSION = 1
 MAX_IMAGE_SIDE = 16384
 RIGID_TOL = 1e-6       # max |R^T R - I| for a camera rotation (dimensionless)
+# Magnitudes (docs/scene-format.md, "Supported range"). Any number: products of a few stay far
+# from float overflow (shading multiplies colours, powers, strengths). Positions (m): the
+# tracer's tolerances are fractions of the object's size (1e-9 of its box diagonal D for a hit,
+# 1e-7 between events), so one control point 1e9 m out makes them metres and the object
+# vanishes. And the object must lie within MAX_OBJECT_OFFSET * D of the origin: coordinates
+# are rounded to ~1.1e-16 |x|, which must stay below the Newton tolerance 1e-11 D (measured:
+# a sphere 2e4 D from the origin traces as at the origin, 2e5 D away it does not).
+MAX_NUMBER = 1e12
+MAX_COORD = 1e5
+MAX_OBJECT_OFFSET = 1e4
+MAX_IOR = 100.0
+MAX_CLASS_ID = 2 ** 31 - 1     # class ids are Blender integer properties (32-bit)
 UNIT_TOL = 1e-9        # sun directions further than this from unit length are normalized on load
 
 TEXTURE_KINDS = {  # kind -> fields it uses (besides "kind")
@@ -92,9 +104,14 @@ def _obj(v, path: str, required=(), optional=(), what: str = "") -> dict:
 def _number(v, path: str, gt=None, ge=None, le=None) -> float:
     if type(v) not in (int, float):
         _fail(path, f"expected a number (got {_tname(v)} {v!r})")
-    x = float(v)
+    try:
+        x = float(v)
+    except OverflowError:
+        _fail(path, f"must be finite (got {v!r})")
     if not np.isfinite(x):
         _fail(path, f"must be finite (got {x!r})")
+    if abs(x) > MAX_NUMBER:
+        _fail(path, f"magnitude must be <= {MAX_NUMBER:g} (got {x!r})")
     if gt is not None and not x > gt:
         _fail(path, f"must be > {gt} (got {x!r})")
     if ge is not None and not x >= ge:
@@ -128,9 +145,11 @@ def _boolean(v, path: str) -> bool:
     return v
 
 
-def _array(v, path: str, shape: tuple, integer: bool = False) -> np.ndarray:
+def _array(v, path: str, shape: tuple, integer: bool = False,
+           limit: float = MAX_NUMBER) -> np.ndarray:
     """Nested JSON lists -> float64 (or int64) array of ``shape`` (None: any length, the same for
-    all siblings); every entry must be a finite number (an integer when ``integer``)."""
+    all siblings); every entry must be a finite number of magnitude <= ``limit`` (an integer
+    when ``integer``)."""
     dims = list(shape)
     ok = (int,) if integer else (int, float)
 
@@ -156,17 +175,30 @@ def _array(v, path: str, shape: tuple, integer: bool = False) -> np.ndarray:
     try:
         arr = np.array(v, dtype=np.int64 if integer else np.float64).reshape(dims)
     except OverflowError:
-        _fail(path, "integer out of range")
+        _fail(path, "integer out of range" if integer else "number out of range")
     if not integer:
         bad = ~np.isfinite(arr)
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
             _fail(_index(path, idx), f"must be finite (got {float(arr[idx])!r})")
+        big = np.abs(arr) > limit
+        if big.any():
+            idx = tuple(int(i) for i in np.argwhere(big)[0])
+            _fail(_index(path, idx), f"magnitude must be <= {limit:g} (got {float(arr[idx])!r})")
     return arr
+
+
+def _coords(v, path: str, shape: tuple) -> np.ndarray:
+    """Positions in metres: an array whose entries lie within +-MAX_COORD."""
+    return _array(v, path, shape, limit=MAX_COORD)
 
 
 def _vec3(v, path: str) -> tuple[float, float, float]:
     return tuple(float(x) for x in _array(v, path, (3,)))
+
+
+def _point3(v, path: str) -> tuple[float, float, float]:
+    return tuple(float(x) for x in _coords(v, path, (3,)))
 
 
 def _rgb(v, path: str) -> tuple[float, float, float]:
@@ -266,7 +298,7 @@ def _object_material(v, path: str) -> ObjectMaterial:
     m = ObjectMaterial()
     _obj(v, path, (), ("kind", "ior", "tint", "base_color", "diffuse", "specular", "shininess"))
     m.kind = _string(v.get("kind", m.kind), _at(path, "kind"), OBJECT_MATERIAL_KINDS, "kind")
-    m.ior = _number(v.get("ior", m.ior), _at(path, "ior"), gt=0)
+    m.ior = _number(v.get("ior", m.ior), _at(path, "ior"), ge=1 / MAX_IOR, le=MAX_IOR)
     m.tint = _rgb(v.get("tint", m.tint), _at(path, "tint"))
     m.base_color = _rgb(v.get("base_color", m.base_color), _at(path, "base_color"))
     m.diffuse = _number(v.get("diffuse", m.diffuse), _at(path, "diffuse"), ge=0, le=1)
@@ -332,16 +364,16 @@ def _patch(v, path: str) -> Patch:
     kind = _kind(v, path, ("nurbs", "mesh"), None)
     if kind == "mesh":
         _obj(v, path, ("kind", "name", "class_id", "vertices"), FACE_KEYS, " for a mesh patch")
-        verts = _array(v["vertices"], _at(path, "vertices"), (None, 3))
+        verts = _coords(v["vertices"], _at(path, "vertices"), (None, 3))
         return Patch(name=_string(v["name"], _at(path, "name")),
-                     class_id=_integer(v["class_id"], _at(path, "class_id"), lo=0),
+                     class_id=_integer(v["class_id"], _at(path, "class_id"), 0, MAX_CLASS_ID),
                      vertices=verts, triangles=_faces(v, path, len(verts)))
     _obj(v, path, ("kind", "name", "class_id", "degree_u", "degree_v", "knots_u", "knots_v",
                    "points"), ("weights",), " for a nurbs patch")
     name = _string(v["name"], _at(path, "name"))
-    class_id = _integer(v["class_id"], _at(path, "class_id"), lo=0)
+    class_id = _integer(v["class_id"], _at(path, "class_id"), 0, MAX_CLASS_ID)
     deg = {d: _integer(v[f"degree_{d}"], _at(path, f"degree_{d}"), lo=1) for d in "uv"}
-    pts = _array(v["points"], _at(path, "points"), (None, None, 3))
+    pts = _coords(v["points"], _at(path, "points"), (None, None, 3))
     counts = {"u": pts.shape[0], "v": pts.shape[1]}
     knots = {}
     for d in "uv":
@@ -375,7 +407,7 @@ def _patch(v, path: str) -> Patch:
 
 def _mesh(v, path: str, materials: dict) -> Mesh:
     _obj(v, path, ("name", "vertices", "material"), FACE_KEYS + ("uvs", "smooth"))
-    verts = _array(v["vertices"], _at(path, "vertices"), (None, 3))
+    verts = _coords(v["vertices"], _at(path, "vertices"), (None, 3))
     mesh = Mesh(name=_string(v["name"], _at(path, "name")), vertices=verts,
                 triangles=_faces(v, path, len(verts)),
                 material=_string(v["material"], _at(path, "material")))
@@ -399,7 +431,7 @@ def _light(v, path: str) -> Light:
     li.color = _rgb(v.get("color", li.color), _at(path, "color"))
     li.shadows = _boolean(v.get("shadows", li.shadows), _at(path, "shadows"))
     if kind == "point":
-        li.position = _vec3(v.get("position", li.position), _at(path, "position"))
+        li.position = _point3(v.get("position", li.position), _at(path, "position"))
         li.power = _number(v.get("power", li.power), _at(path, "power"), ge=0)
     else:
         d = np.array(_vec3(v.get("direction", li.direction), _at(path, "direction")))
@@ -452,6 +484,10 @@ def _camera(v, path: str) -> Camera:
              " (a camera has either matrix_world or location/look_at/up)")
         mp = _at(path, "matrix_world")
         m = _array(v["matrix_world"], mp, (4, 4))
+        far = np.abs(m[:3, 3]) > MAX_COORD
+        if far.any():
+            i = int(np.argmax(far))
+            _fail(f"{mp}[{i}][3]", f"magnitude must be <= {MAX_COORD:g} (got {float(m[i, 3])!r})")
         if m[3].tolist() != [0, 0, 0, 1]:
             _fail(_at(mp, 3), f"bottom row must be [0, 0, 0, 1] (got {m[3].tolist()})")
         r = m[:3, :3]
@@ -464,8 +500,8 @@ def _camera(v, path: str) -> Camera:
     else:
         _obj(v, path, ("name", "location", "look_at"), ("up",) + CAMERA_FIELDS,
              " (a camera has either matrix_world or location/look_at/up)")
-        loc = _vec3(v["location"], _at(path, "location"))
-        tgt = _vec3(v["look_at"], _at(path, "look_at"))
+        loc = _point3(v["location"], _at(path, "location"))
+        tgt = _point3(v["look_at"], _at(path, "look_at"))
         up = _vec3(v.get("up", (0.0, 0.0, 1.0)), _at(path, "up"))
         try:
             m = look_at_matrix(loc, tgt, up)
@@ -481,6 +517,21 @@ def _camera(v, path: str) -> Camera:
         setattr(c, key, _number(v.get(key, getattr(c, key)), _at(path, key)))
     c.clip_end = _number(v.get("clip_end", c.clip_end), _at(path, "clip_end"), gt=c.clip_start)
     return c
+
+
+def _check_object_offset(patches) -> None:
+    """The object's points lie within MAX_OBJECT_OFFSET box diagonals of the origin."""
+    pts = [p.surface.points.reshape(-1, 3) if p.surface is not None else p.vertices
+           for p in patches]
+    allp = np.concatenate(pts)
+    diag = float(np.linalg.norm(allp.max(axis=0) - allp.min(axis=0)))
+    far = np.abs(allp).max()
+    if far > MAX_OBJECT_OFFSET * diag:
+        i = next(i for i, q in enumerate(pts) if np.abs(q).max() == far)
+        key = "vertices" if patches[i].surface is None else "points"
+        _fail(f"object.patches[{i}].{key}", f"the object lies {far:.3g} m from the origin, more "
+              f"than {MAX_OBJECT_OFFSET:g} times its size ({diag:.3g} m): coordinates that far "
+              "out cannot be traced to the tracer's tolerance; move the scene to the origin")
 
 
 def _list(v, path: str) -> list:
@@ -524,6 +575,7 @@ def _parse(d, base_dir: str | None, load_images: bool) -> Scene:
                for i, p in enumerate(_list(o["patches"], "object.patches"))]
     if not patches:
         _fail("object.patches", "the specular object needs at least one patch")
+    _check_object_offset(patches)
     obj = SpecularObject(name=_string(o.get("name", "object"), "object.name"), patches=patches,
                          material=_object_material(o.get("material", {}), "object.material"))
 
@@ -557,13 +609,23 @@ def _no_duplicates(pairs):
 def load_scene(path: str | os.PathLike) -> Scene:
     """Read, validate and build a scene file; images load relative to the file's folder."""
     path = os.fspath(path)
-    with open(path, encoding="utf-8") as f:
-        text = f.read()
+    with open(path, "rb") as f:
+        data = f.read()
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise SceneError(f"{path}: not UTF-8 text (byte 0x{data[e.start]:02x} at offset "
+                         f"{e.start}); scene files are UTF-8 JSON") from None
     try:
         d = json.loads(text, object_pairs_hook=_no_duplicates)
     except json.JSONDecodeError as e:
         raise SceneError(f"{path}: invalid JSON at line {e.lineno} column {e.colno}: "
                          f"{e.msg}") from None
+    except RecursionError:
+        raise SceneError(f"{path}: JSON nested too deeply (no scene needs more than a few "
+                         "levels)") from None
+    except SceneError as e:                 # a duplicate key
+        raise SceneError(f"{path}: {e}") from None
     return scene_from_dict(d, os.path.dirname(os.path.abspath(path)))
 
 

@@ -23,6 +23,10 @@ SHADOW_OFFSET = 1e-7    # fraction of the scene's bounding-box diagonal (at leas
                         # ray origins move this far along the facing geometric normal so that
                         # a surface does not shadow itself through rounding
 SHADE_CHUNK = 65536     # rays shaded at once: bounds the per-chunk hit records
+# Radiance is clamped here so that images stay finite in float32 (max 3.4e38) after the
+# renderer's factors (tint, at most the scene format's 1e12) for any valid scene; real scenes
+# are many orders below it (the sun's disc is ~2e7 W/m^2/sr).
+MAX_RADIANCE = 1e20
 
 
 class Environment:
@@ -75,7 +79,7 @@ class Environment:
             sl = slice(c0, min(n, c0 + SHADE_CHUNK))
             out[sl] = self._shade_chunk(origins[sl], dirs[sl], tmin[sl])
         self.stats["env_rays"] += n
-        return out
+        return np.minimum(out, MAX_RADIANCE)
 
     def _shade_chunk(self, origins, dirs, tmin):
         hit = self.meshes.closest_hit(origins, dirs, tmin)
@@ -118,7 +122,9 @@ class Environment:
             r2 = np.einsum("ij,ij->i", to, to)
             r = np.sqrt(r2)
             l = to / np.where(r > 0, r, 1.0)[:, None]
-            scale = light.power / (4.0 * np.pi * np.where(r2 > 0, r2, np.inf))
+            # a light nearer than the shadow offset is on the surface: 1/r^2 stops growing
+            # there (finite, so colour components of 0 give 0, not NaN)
+            scale = light.power / (4.0 * np.pi * np.maximum(r2, self.offset ** 2))
         else:
             d = np.asarray(light.direction, dtype=np.float64)
             l = np.broadcast_to(-d / np.linalg.norm(d), points.shape)
@@ -176,4 +182,4 @@ def local_illumination(points, normals, view_dirs, material: ObjectMaterial,
             h /= np.where(hn > 0, hn, 1.0)[:, None]
             nh = np.maximum(np.einsum("ij,ij->i", n, h), 0.0)
             out += (material.specular * (s + 8.0) / (8.0 * np.pi)) * e * (nh ** s)[:, None]
-    return out
+    return np.minimum(out, MAX_RADIANCE)

@@ -67,6 +67,14 @@ CASES = {
     "string where a number goes": (_set(P0 + ("degree_u",), "2"), "object.patches[0].degree_u",
                                    "integer"),
     "no patches": (_set(("object", "patches"), []), "object.patches", "at least one patch"),
+    "class id beyond 64 bits": (_set(P0 + ("class_id",), 2 ** 70), "object.patches[0].class_id",
+                                "must be <= 2147483647"),
+    "control point at 1e250": (_set(P0 + ("points", 4, 2, 1), 1e250),
+                               "object.patches[0].points[4][2][1]", "magnitude must be <= 100000"),
+    "control point moved 1e9 m": (_set(P0 + ("points", 3, 2, 0), 1e9),
+                                  "object.patches[0].points[3][2][0]", "magnitude"),
+    "light power 1e308": (_set(("lights", 0, "power"), 1e308), "lights[0].power",
+                          "magnitude must be <= 1e+12"),
 }
 
 
@@ -108,13 +116,15 @@ def test_bad_scene_names_the_field(case, sphere_dict, tmp_path, capsys):
 
 @pytest.mark.parametrize("text", ['{"format": "riray-scene", "version": 1,', "", "[1, 2",
                                   '{"format": "riray-scene", "format": "riray-scene"}',
-                                  "\u00ff\u00fe not json"])
+                                  "\u00ff\u00fe not json", "[" * 100_000 + "]" * 100_000,
+                                  '{"a":' * 100_000 + "1" + "}" * 100_000])
 def test_malformed_json(text, tmp_path, capsys):
     path = tmp_path / "bad.json"
     path.write_text(text, encoding="latin-1")
     with pytest.raises(ValueError) as e:
         load_scene(path)
     assert "\n" not in str(e.value)
+    assert str(e.value).startswith(str(path)), e.value
     _cli_rejects(capsys, ["validate", str(path)], "validate")
     _cli_rejects(capsys, ["trace-rays", str(path), "--rays", str(path), "--out",
                           str(tmp_path / "o.npz")], "trace-rays")

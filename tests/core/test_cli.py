@@ -3,8 +3,11 @@ documented files, trace-rays writes the documented arrays, bad input gives exit 
 
 import argparse
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -209,12 +212,22 @@ def _bad_rays(tmp_path):
     inf[0, 4] = np.inf
     zero = ok.copy()
     zero[3, 3:] = 0.0
+    far = ok.copy()
+    far[1, 2] = 1e300
     out = {"shape": ok[:, :5], "1d": ok.ravel(), "nan": nan, "inf": inf, "zero_dir": zero,
-           "strings": np.array([["a"] * 6])}
+           "strings": np.array([["a"] * 6]), "far_origin": far}
     paths = {}
     for k, v in out.items():
         paths[k] = tmp_path / f"{k}.npy"
         np.save(paths[k], v)
+    paths["empty"] = tmp_path / "empty.npy"
+    paths["empty"].write_bytes(b"")
+    # a valid header claiming 1e12 rows (48 TB) over one row of data
+    paths["huge_header"] = tmp_path / "huge.npy"
+    with open(paths["huge_header"], "wb") as f:
+        np.lib.format.write_array_header_1_0(
+            f, {"descr": "<f8", "fortran_order": False, "shape": (10 ** 12, 6)})
+        f.write(ok[0].tobytes())
     paths["npz"] = tmp_path / "x.npz"
     np.savez(paths["npz"], rays=ok)
     paths["text"] = tmp_path / "text.npy"
@@ -239,6 +252,30 @@ def test_trace_rays_bad_input_exit_2_one_line(files, tmp_path, capsys):
     main(["trace-rays", str(files / "sphere.json"), "--rays", str(paths["zero_dir"]), "--out",
           str(tmp_path / "o.npz")])
     assert "row 3 is zero" in capsys.readouterr().err
+    main(["trace-rays", str(files / "sphere.json"), "--rays", str(paths["huge_header"]), "--out",
+          str(tmp_path / "o.npz")])
+    assert "truncated: the header says 1000000000000 rows" in capsys.readouterr().err
+    main(["trace-rays", str(files / "sphere.json"), "--rays", str(paths["far_origin"]), "--out",
+          str(tmp_path / "o.npz")])
+    assert "row 1 column 2: origin coordinate 1e+300 is outside" in capsys.readouterr().err
+
+
+def test_trace_rays_directions_of_any_size(files, tmp_path, capsys):
+    """Directions are normalized without overflow or underflow: 1e300 and 1e-300 components
+    give the unit direction (a miss passes it through unchanged, a hit goes on from it)."""
+    rays = _crafted_rays()[[0, 2, 3]]                  # a hit through the centre, two misses
+    want = rays[:, 3:] / np.linalg.norm(rays[:, 3:], axis=1)[:, None]
+    for scale in (1e300, 1e-300):
+        scaled = rays.copy()
+        scaled[:, 3:] *= scale
+        np.save(tmp_path / "r.npy", scaled)
+        assert main(["trace-rays", str(files / "sphere.json"), "--rays", str(tmp_path / "r.npy"),
+                     "--out", str(tmp_path / "o.npz"), "--workers", "1", "--quiet"]) == 0
+        capsys.readouterr()
+        z = np.load(tmp_path / "o.npz")
+        assert z["hit"].tolist() == [True, False, False]
+        assert np.allclose(z["out_dir"][1:], want[1:], atol=1e-15)
+        assert np.allclose(z["out_dir"][0], (0, 1, 0), atol=1e-9)
 
 
 def test_validate_good_and_bad(files, tmp_path, capsys):
@@ -267,6 +304,61 @@ def test_render_bad_arguments(files, tmp_path, capsys):
         assert what in err
     assert main(["render", "no_such_scene.json", "--out", str(tmp_path / "x")]) == 2
     _one_line_error(capsys.readouterr().err, "render")
+
+
+def test_image_sizes_and_workers_checked_first(files, tmp_path, capsys, monkeypatch):
+    """Every size flag has the scene format's limit (1..16384), every --workers is >= 1 and a
+    bad RIRAY_WORKERS is named: one line, exit 2, before any work (nothing written)."""
+    sphere = str(files / "sphere.json")
+    out = str(tmp_path / "x")
+    cases = [(["render", sphere, "--out", out, "--width", "100000", "--height", "100000"],
+              "--width: image size must be 1..16384 pixels (got 100000)"),
+             (["render", sphere, "--out", out, "--height", "16385"], "--height: image size"),
+             (["demo", "--out", out, "--size", "20000"], "--size: image size"),
+             (["bench-exact", "--size", "0", "--out", out + ".json"], "--size: image size"),
+             (["bench", "--size", "16385", "--out", out], "--size: image size")]
+    for cmd in (["render", sphere, "--out", out], ["bake", sphere, "--out", out + ".rit"],
+                ["trace-rays", sphere, "--rays", out + ".npy", "--out", out + ".npz"],
+                ["bench-exact", "--out", out + ".json"], ["demo", "--out", out]):
+        cases += [(cmd + ["--workers", w], f"--workers must be >= 1 (got {w})")
+                  for w in ("0", "-2")]
+    for argv, msg in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        _one_line_error(err, argv[0])
+        assert msg in err, (argv, err)
+    monkeypatch.setenv("RIRAY_WORKERS", "abc")
+    assert main(["render", sphere, "--out", out]) == 2
+    err = capsys.readouterr().err
+    _one_line_error(err, "render")
+    assert "RIRAY_WORKERS must be a positive integer (got 'abc')" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_ctrl_c_during_bake(files, tmp_path):
+    """SIGINT to the whole process group (a terminal's Ctrl-C) mid-bake, with worker processes:
+    one line, exit 130, no traceback from the parent or the workers; the old cache is intact."""
+    old = tmp_path / "tree.rit"
+    old.write_bytes(b"the previous cache")
+    exe = Path(sys.executable).parent / "riray"
+    p = subprocess.Popen([str(exe), "bake", str(files / "sphere.json"), "--out", str(old),
+                          "--full", "--viewpoint-depth", "3", "--direction-depth", "5",
+                          "--workers", "2"],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                         start_new_session=True)
+    seen = b""
+    while b"bake:" not in seen:                          # the progress bar: baking has begun
+        ch = p.stderr.read(1)
+        assert ch, seen
+        seen += ch
+    time.sleep(0.3)
+    os.killpg(p.pid, signal.SIGINT)
+    err = (seen + p.stderr.read()).decode()
+    assert p.wait(timeout=60) == 130, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert err.splitlines()[-1] == "riray bake: interrupted", err
+    assert old.read_bytes() == b"the previous cache"
+    assert [f.name for f in tmp_path.iterdir()] == ["tree.rit"]          # no temporary left
 
 
 def test_bench_exact_plumbing(tmp_path, capsys):

@@ -154,7 +154,21 @@ CASES = [
     (PATCH + ["wieghts"], [], r"^object\.patches\[0\]: unknown key 'wieghts' for a nurbs patch; did you mean 'weights'"),
     (PATCH + ["class_id"], -1, r"^object\.patches\[0\]\.class_id: must be >= 0"),
     (["object", "patches"], [], r"^object\.patches: the specular object needs at least one patch"),
-    (["object", "material", "ior"], 0, r"^object\.material\.ior: must be > 0 \(got 0\.0\)"),
+    (["object", "material", "ior"], 0, r"^object\.material\.ior: must be >= 0\.01 \(got 0\.0\)"),
+    (["object", "material", "ior"], 1e3, r"^object\.material\.ior: must be <= 100"),
+    # the supported range (docs/scene-format.md)
+    (PATCH + ["points", 1, 0, 2], 1e200, r"^object\.patches\[0\]\.points\[1\]\[0\]\[2\]: magnitude must be <= 100000 \(got 1e\+200\)"),
+    (PATCH + ["points", 1, 0, 2], 1e9, r"^object\.patches\[0\]\.points\[1\]\[0\]\[2\]: magnitude must be <= 100000"),
+    (PATCH + ["weights", 0, 1], 1e300, r"^object\.patches\[0\]\.weights\[0\]\[1\]: magnitude must be <= 1e\+12"),
+    (PATCH + ["class_id"], 2 ** 70, r"^object\.patches\[0\]\.class_id: must be <= 2147483647"),
+    (["object", "patches", 1, "vertices", 2, 1], -2e5, r"^object\.patches\[1\]\.vertices\[2\]\[1\]: magnitude must be <= 100000"),
+    (MESH + ["vertices", 0, 0], 3e5, r"^environment\.meshes\[0\]\.vertices\[0\]\[0\]: magnitude must be <= 100000"),
+    (["lights", 0, "power"], 1e308, r"^lights\[0\]\.power: magnitude must be <= 1e\+12 \(got 1e\+308\)"),
+    (["lights", 0, "position"], [0, 0, 1e6], r"^lights\[0\]\.position\[2\]: magnitude must be <= 100000"),
+    (["lights", 1, "strength"], 1e13, r"^lights\[1\]\.strength: magnitude must be <= 1e\+12"),
+    (["materials", 1, "color", 0], 1e300, r"^materials\[1\]\.color\[0\]: magnitude must be <= 1e\+12"),
+    (["cameras", 0, "location"], [0, -2e5, 1], r"^cameras\[0\]\.location\[1\]: magnitude must be <= 100000"),
+    (CAM + ["matrix_world", 2, 3], 2e5, r"^cameras\[1\]\.matrix_world\[2\]\[3\]: magnitude must be <= 100000"),
     (["object", "material", "kind"], "metal", r"^object\.material\.kind: unknown kind 'metal'"),
     (MESH + ["quads", 0, 3], 4, r"^environment\.meshes\[0\]\.quads\[0\]\[3\]: vertex index 4 out of range"),
     (MESH + ["material"], "wal", r"^environment\.meshes\[0\]\.material: material 'wal' is not defined"),
@@ -190,6 +204,29 @@ CASES = [
 def test_validation_names_field_and_problem(path, value, pattern):
     msg = errmsg(mutate(path, value))
     assert re.search(pattern, msg), msg
+
+
+def test_integers_beyond_float_range():
+    assert re.search(r"^object\.patches\[0\]\.points: number out of range",
+                     errmsg(mutate(PATCH + ["points", 1, 0, 2], 10 ** 400)))
+    assert re.search(r"^lights\[0\]\.power: must be finite", errmsg(mutate(["lights", 0, "power"],
+                                                                          10 ** 400)))
+
+
+def test_object_far_from_the_origin_for_its_size():
+    """The object (box diagonal D = sqrt(3) here) may lie up to 1e4 D from the origin: 5e3 m
+    loads, 5e4 m (within the +-1e5 m coordinate range) is refused, naming the patch."""
+    for shift, ok in ((5e3, True), (5e4, False)):
+        d = minimal()
+        for p in d["object"]["patches"]:
+            key = "points" if p["kind"] == "nurbs" else "vertices"
+            p[key] = (np.asarray(p[key], float) + shift).tolist()
+        if ok:
+            scene_from_dict(d)
+        else:
+            assert re.search(r"^object\.patches\[\d\]\.(points|vertices): the object lies "
+                             r"5e\+04 m from the origin, more than 10000 times its size",
+                             errmsg(d))
 
 
 def test_tolerates_near_rigid_camera():

@@ -6,7 +6,7 @@ import pytest
 from riray.scene.model import (Light, Material, Mesh, ObjectMaterial, Scene, SpecularObject,
                                Texture, World)
 from riray.trace.meshes import MeshSet
-from riray.trace.shading import Environment, local_illumination
+from riray.trace.shading import MAX_RADIANCE, Environment, local_illumination
 from riray.trace.textures import eval_texture, eval_world
 
 ALBEDO = np.array([0.8, 0.6, 0.4])
@@ -123,3 +123,39 @@ def test_local_illumination():
     np.testing.assert_allclose(local_illumination(p, n, view, mat, env2),
                                [0.4 * np.array(mat.base_color) / np.pi * 0.5] * 2, rtol=1e-12)
     assert np.all(local_illumination(p, n, view, ObjectMaterial(specular=0.0), env) == 0)
+
+
+def test_radiance_is_finite_for_extreme_valid_values():
+    """A point light 1e-160 m above the floor (1/r^2 beyond float range) with the largest power
+    and colour a scene file allows, one colour component 0: finite radiance, no NaN (inf * 0),
+    clamped at MAX_RADIANCE, and the light's own spot the brightest."""
+    light = Light("p", "point", color=(1e12, 0.0, 1e12), position=(0.0, 0.0, 1e-160), power=1e12)
+    env = Environment(scene([light]))
+    o, d = down_rays([[0.0, 0.0], [1e-3, 0.0], [2.0, 0.0]])
+    col = env.shade_rays(o, d)
+    assert np.isfinite(col).all() and np.isfinite(col.astype(np.float32)).all()
+    assert col.max() <= MAX_RADIANCE and np.all(col[:, 1] == 0)
+    assert col[0, 0] >= col[1, 0] > col[2, 0] > 0
+    mat = ObjectMaterial(diffuse=1.0, base_color=(1e12, 1e12, 0.0), specular=1e12,
+                         shininess=1e12)
+    n = np.tile([0.0, 0.0, 1.0], (3, 1))
+    loc = local_illumination(o + 3 * d, n, d, mat, env)
+    assert np.isfinite(loc).all() and loc.max() <= MAX_RADIANCE
+
+
+def test_render_of_extreme_valid_scene_is_finite_in_float32():
+    """Every colour, power and strength of the glass sphere scene at the format's maximum
+    (1e12): the float32 image is finite (radiance x tint would overflow it unclamped)."""
+    from riray.render.exact import render_exact
+    from riray.scene import samples
+    s = samples.build("glass_sphere")
+    for li in s.lights:
+        li.color, li.power, li.strength = (1e12,) * 3, 1e12, 1e12
+    for m in s.materials.values():
+        m.color.color = m.color.color2 = (1e12,) * 3
+        m.strength = 1e12
+    s.object.material.tint = (1e12,) * 3
+    s.world.strength = s.world.ambient = 1e12
+    res = render_exact(s, camera="close", width=6, height=6, workers=1)
+    assert np.isfinite(res.image.astype(np.float32)).all()
+    assert res.image.max() > 1e20                      # really that bright (tint x clamped)
