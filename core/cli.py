@@ -6,6 +6,7 @@ import argparse
 import json
 import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -94,15 +95,43 @@ def _bake_opts(p):
                    help="comma-separated camera names to bake for (default: all)")
 
 
-def _bake(scene, args, out, st):
-    from .ritree import tree as ritree
-    from .ritree.bake import bake
-    from .ritree.region import region_for_cameras
-    params = ritree.BakeParams(
+def _bake_params(args):
+    from .ritree.tree import BakeParams
+    return BakeParams(
         viewpoint_depth=args.viewpoint_depth, direction_depth=args.direction_depth,
         viewpoint_refine=args.viewpoint_refine,
         min_direction_depth=args.min_direction_depth, tolerance_deg=args.tolerance,
         tolerance_dist=args.tolerance_dist, search_steps=args.search_steps).validate()
+
+
+def _check_writable(path, folder=False):
+    """ValueError unless ``path`` can be written: a file in an existing folder that takes new
+    files, or (``folder``) a folder that exists or can be made. Checked before the slow work."""
+    p = Path(path).absolute()
+    if folder:
+        probe = p
+        while not probe.exists():              # the writer makes the missing folders
+            probe = probe.parent
+        if not probe.is_dir():
+            raise ValueError(f"{path}: {probe} is a file, not a folder")
+    else:
+        if p.is_dir():
+            raise ValueError(f"{path}: is a folder")
+        probe = p.parent
+        if not probe.is_dir():
+            raise ValueError(f"{path}: {probe} is a file, not a folder" if probe.exists()
+                             else f"{path}: the folder {probe} does not exist")
+    try:
+        with tempfile.TemporaryFile(dir=probe):
+            pass
+    except OSError as e:
+        raise ValueError(f"{path}: cannot write in {probe} ({e.strerror})") from None
+
+
+def _bake(scene, args, params, out, st):
+    from .ritree import tree as ritree
+    from .ritree.bake import bake
+    from .ritree.region import region_for_cameras
     region = None
     if not args.full:
         names = args.cameras.split(",") if args.cameras else [c.name for c in scene.cameras]
@@ -116,9 +145,11 @@ def _bake(scene, args, out, st):
 
 def cmd_bake(args):
     from .render.exact import SceneTracer
+    params = _bake_params(args)
+    _check_writable(args.out)
     scene = _load(args.scene)
     st = SceneTracer(scene)
-    tree = _bake(scene, args, args.out, st)
+    tree = _bake(scene, args, params, args.out, st)
     print(json.dumps({"written": args.out, **tree.meta}, indent=2))
     return 0
 
@@ -132,13 +163,15 @@ def cmd_info(args):
 
 def cmd_render(args):
     from .render.exact import render_exact, save_render
+    options = _query_options(args) if args.tree else None
+    _check_writable(args.out if args.tree else Path(args.out).parent, folder=True)
     scene = _load(args.scene)
     if args.tree:
         from .render.interpolated import render_tree, save_tree_render
         from .ritree import tree as ritree
         tree = ritree.load(args.tree, scene)
         res = render_tree(scene, tree, camera=args.camera, width=args.width, height=args.height,
-                          options=_query_options(args), reference=not args.no_reference,
+                          options=options, reference=not args.no_reference,
                           workers=args.workers,
                           progress=None if args.quiet else _progress("render"))
         paths = save_tree_render(res, args.out)
@@ -208,9 +241,13 @@ def _load_rays(path):
 
 def cmd_trace_rays(args):
     from .render.exact import SceneTracer
+    from .render.image import atomic_write
     if args.inside and args.tree:
         raise ValueError("--inside cannot be combined with --tree (the RI-Tree answers rays "
                          "that enter the object from outside)")
+    options = _query_options(args) if args.tree else None
+    out_path = args.out if args.out.endswith(".npz") else args.out + ".npz"
+    _check_writable(out_path)
     scene = _load(args.scene)
     o, u = _load_rays(args.rays)
     st = SceneTracer(scene)
@@ -218,7 +255,7 @@ def cmd_trace_rays(args):
     if args.tree:
         from .ritree import tree as ritree
         from .ritree.query import TreeQuery
-        tq = TreeQuery(ritree.load(args.tree, scene), st, _query_options(args))
+        tq = TreeQuery(ritree.load(args.tree, scene), st, options)
         out, answers, why, _ = tq(o, u)
         extra = {"answer": answers, "traced_because": why}
     else:
@@ -235,7 +272,7 @@ def cmd_trace_rays(args):
                            None if args.quiet else _progress("trace"))
         out = ObjectRays(**{k: np.concatenate([p.__dict__[k] for p in parts])
                             for k in parts[0].__dict__}) if parts else f(0, 0)
-    np.savez_compressed(args.out, **{k: v for k, v in out.__dict__.items()}, **extra)
+    atomic_write(out_path, lambda f: np.savez_compressed(f, **out.__dict__, **extra))
     print(f"{args.out}: {len(o)} rays, {int(out.hit.sum())} hit the object, "
           f"{int(out.null.sum())} null")
     return 0
@@ -253,7 +290,9 @@ def cmd_demo(args):
     from .render.exact import SceneTracer
     from .render.interpolated import render_tree, save_tree_render
     from .scene.samples import build
+    params, options = _bake_params(args), _query_options(args)
     out = Path(args.out)
+    _check_writable(out, folder=True)
     out.mkdir(parents=True, exist_ok=True)
     scene = build(args.scene)
     scene.render.width = scene.render.height = args.size
@@ -262,8 +301,8 @@ def cmd_demo(args):
     print(f"demo: {args.scene} / camera {args.camera} at {args.size}x{args.size}: "
           f"baking the RI-Tree (viewpoint depth {args.viewpoint_depth}, direction depth "
           f"{args.direction_depth}) for this camera")
-    tree = _bake(scene, args, out / "tree.rit", st)
-    res = render_tree(scene, tree, camera=args.camera, options=_query_options(args),
+    tree = _bake(scene, args, params, out / "tree.rit", st)
+    res = render_tree(scene, tree, camera=args.camera, options=options,
                       reference=True, workers=args.workers, st=st,
                       progress=_progress("interpolated + exact render"))
     res.stats["bake"] = tree.meta
@@ -277,6 +316,9 @@ def cmd_demo(args):
 
 def cmd_bench_exact(args):
     from .bench.exact_bench import run, table
+    if Path(args.out).is_dir():
+        raise ValueError(f"{args.out}: is a folder")
+    _check_writable(Path(args.out).parent, folder=True)
     res = run(args.scenes, size=args.size, camera=args.camera, workers=args.workers, out=args.out,
               progress_factory=None if args.quiet else _progress)
     print(f"{res['settings']['command']}  ({res['machine']['cpu_count']} cores, "
@@ -293,6 +335,7 @@ def cmd_bench(args):
         for p in res["written"]:
             print(f"wrote {p}")
         return 0
+    _check_writable(args.out, folder=True)
     cfg = config_from_args(
         quick=args.quick, out=args.out, scenes=args.scenes, views=args.views, size=args.size,
         repeats=args.repeats, workers=args.workers, viewpoint_depth=args.viewpoint_depth,

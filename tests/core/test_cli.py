@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -379,3 +380,76 @@ def test_bench_exact_plumbing(tmp_path, capsys):
 def test_saved_scene_round_trips(files):
     # the fixture's file is a real scene file (guards the tests above against a silent fallback)
     assert load_scene(files / "sphere.json").render.width == 24
+
+
+def test_outputs_and_parameters_checked_before_any_work(files, tmp_path, capsys, monkeypatch):
+    """An output that cannot be written (missing folder, a file in the way, a folder where a
+    file goes) or a bad bake / query parameter: exit 2 and one line before the scene is even
+    loaded (so before any bake or render), nothing written."""
+    import riray.cli as cli
+    import riray.scene.samples as samples
+
+    def no_work(*a, **k):
+        raise AssertionError("the slow work started")
+
+    monkeypatch.setattr(cli, "_load", no_work)
+    monkeypatch.setattr(samples, "build", no_work)
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    missing = tmp_path / "missing" / "x.rit"
+    sphere = str(files / "sphere.json")
+    cases = [
+        (["bake", sphere, "--out", str(missing)], f"the folder {missing.parent} does not exist"),
+        (["bake", sphere, "--out", str(a_file / "x.rit")], f"{a_file} is a file, not a folder"),
+        (["bake", sphere, "--out", str(tmp_path)], "is a folder"),
+        (["bake", sphere, "--out", str(tmp_path / "t.rit"), "--tolerance", "-1"],
+         "tolerance_deg must be > 0"),
+        (["bake", sphere, "--out", str(tmp_path / "t.rit"), "--viewpoint-depth", "9"],
+         "viewpoint_depth + viewpoint_refine <= 10"),
+        (["render", sphere, "--out", str(a_file / "sub" / "img")], "is a file, not a folder"),
+        (["render", sphere, "--tree", "t.rit", "--out", str(a_file)], "is a file, not a folder"),
+        (["render", sphere, "--tree", "t.rit", "--out", str(tmp_path / "r"),
+          "--extrapolation", "-1"], "extrapolation must be None or a finite number >= 0"),
+        (["trace-rays", sphere, "--rays", "r.npy", "--out", str(tmp_path / "no" / "o")],
+         "does not exist"),
+        (["demo", "--out", str(a_file)], "is a file, not a folder"),
+        (["demo", "--out", str(tmp_path / "d"), "--search-steps", "99"], "search_steps"),
+        (["bench-exact", "--out", str(tmp_path)], "is a folder"),
+        (["bench", "--out", str(a_file / "b")], "is a file, not a folder"),
+    ]
+    for argv, msg in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        _one_line_error(err, argv[0])
+        assert msg in err, (argv, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
+
+
+def _read_only_folder(tmp_path):
+    """A folder this process cannot create files in: a mode 0o555 folder, or (root ignores
+    modes) /sys on Linux; None if there is none."""
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    for folder in (ro, Path("/sys")):
+        try:
+            with tempfile.TemporaryFile(dir=folder):
+                pass
+        except OSError:
+            return folder
+    return None
+
+
+def test_read_only_output_folder_refused_first(files, tmp_path, capsys, monkeypatch):
+    import riray.cli as cli
+    monkeypatch.setattr(cli, "_load", lambda *a: pytest.fail("the slow work started"))
+    ro = _read_only_folder(tmp_path)
+    try:
+        if ro is None:
+            pytest.skip("no read-only folder available")
+        assert main(["bake", str(files / "sphere.json"), "--out", str(ro / "x.rit")]) == 2
+        err = capsys.readouterr().err
+        _one_line_error(err, "bake")
+        assert f"cannot write in {ro}" in err
+    finally:
+        (tmp_path / "ro").chmod(0o755)
