@@ -20,13 +20,12 @@ from .interp import EXTRAPOLATED, FAIL, UNIT_CORNERS, pick_triangle
 @dataclass
 class ExtraAnswer:
     """Rows (of the arrays passed in) answered from their leaf's extras: weights over the six
-    slots, the two extra sample ids and their cell-local positions, and the status
-    (EXTRA or EXTRAPOLATED, interp's codes)."""
+    slots, which two of the leaf's extras v1..v4 (0..3) slots 4 and 5 hold, and whether the
+    answer is extrapolated."""
 
-    rows: np.ndarray        # (g,)
-    w: np.ndarray           # (g, 6)
-    ids: np.ndarray         # (g, 2)
-    pos: np.ndarray         # (g, 2, 2)
+    rows: np.ndarray          # (g,)
+    w: np.ndarray             # (g, 6)
+    extra: np.ndarray         # (g, 2)
     extrapolated: np.ndarray  # (g,) bool
 
 
@@ -35,7 +34,7 @@ def extra_weights(tree, table, leaf, lx, ly, usable, pc, extrapolation) -> Extra
     usable corners ``usable`` (n, 4) (class ``pc`` (n,)) were too few for the cell itself."""
     n0 = len(leaf)
     empty = ExtraAnswer(np.zeros(0, np.int64), np.zeros((0, 6)), np.zeros((0, 2), np.int64),
-                        np.zeros((0, 2, 2)), np.zeros(0, bool))
+                        np.zeros(0, bool))
     if n0 == 0 or len(tree.ex_node) == 0:
         return empty
     pos = np.minimum(np.searchsorted(tree.ex_node, leaf), len(tree.ex_node) - 1)
@@ -53,7 +52,6 @@ def extra_weights(tree, table, leaf, lx, ly, usable, pc, extrapolation) -> Extra
     r = np.arange(n)
     tri_slot = np.zeros((n, 2, 3), np.int64)
     valid = np.zeros((n, 2), bool)
-    extra_ids = np.zeros((n, 2), np.int64)
     cnt = us.sum(1)
     one = kind == 1
     L = np.where(one, exc[:, 0], 0)
@@ -67,15 +65,12 @@ def extra_weights(tree, table, leaf, lx, ly, usable, pc, extrapolation) -> Extra
     # one-interpolant: triangle (L, v1, v2)
     k1 = np.flatnonzero(one_ok)
     tri_slot[k1, 0] = np.stack([L[k1], np.full(len(k1), 4), np.full(len(k1), 5)], 1)
-    extra_ids[k1] = exi[k1][:, 0:2]
     valid[k1, 0] = True
-    for side, (c1, c2), (e1, e2) in ((a_side, (A[:, 0], A[:, 1]), (0, 1)),
-                                     (b_side, (B[:, 0], B[:, 1]), (2, 3))):
+    for side, (c1, c2) in ((a_side, (A[:, 0], A[:, 1])), (b_side, (B[:, 0], B[:, 1]))):
         s_ = np.flatnonzero(side)
         # T1 = (c1, c2, ea), T2 = (c2, ea, eb), ea on the edge from c1, eb from c2
         tri_slot[s_, 0] = np.stack([c1[s_], c2[s_], np.full(len(s_), 4)], 1)
         tri_slot[s_, 1] = np.stack([c2[s_], np.full(len(s_), 4), np.full(len(s_), 5)], 1)
-        extra_ids[s_] = exi[s_][:, [e1, e2]]
         valid[s_] = True
     if not np.any(valid[:, 0]):
         return empty
@@ -94,5 +89,5 @@ def extra_weights(tree, table, leaf, lx, ly, usable, pc, extrapolation) -> Extra
     slots = tri_slot[good, which[good]]                                   # (g, 3)
     wk = np.zeros((len(good), 6))
     np.add.at(wk, (np.arange(len(good))[:, None], slots), lam[good])
-    return ExtraAnswer(rows=rows[good], w=wk, ids=extra_ids[good], pos=slot_pos[good, 4:6],
+    return ExtraAnswer(rows=rows[good], w=wk, extra=e_idx[good],
                        extrapolated=st[good] == EXTRAPOLATED)

@@ -67,20 +67,27 @@ def locate(tree, o, d, tmax):
     t_in, face, x, y, inside = entry_points(tree, o, d)
     enter = np.isfinite(t_in) & (t_in < tmax)
     q = np.flatnonzero(enter & ~inside)
-    vnode, alpha, beta = tree.vp_forest.locate(face[q], x[q], y[q])
+    vnode, alpha, beta = tree.vp_locator.locate(face[q], x[q], y[q])
     vps = tree.vp_forest.corner[np.maximum(vnode, 0)]
     cf, u, v = dir_to_cube(d[q])
     slot = SLOT[face[q], cf]
     ok = (vnode >= 0) & np.all(vps >= 0, axis=1) & (slot >= 0)
     trees = np.where(ok[:, None], vps * 5 + slot[:, None], 0)                     # (m, 4)
-    leaf, lx, ly = tree.dir_forest.locate(trees.ravel(), np.repeat(u, 4), np.repeat(v, 4))
+    leaf, lx, ly = tree.dir_locator.locate(trees.ravel(), np.repeat(u, 4), np.repeat(v, 4))
     leaf, lx, ly = leaf.reshape(-1, 4), lx.reshape(-1, 4), ly.reshape(-1, 4)
-    rect = tree.dir_rect[trees]
     ok &= np.all(leaf >= 0, axis=1)
-    ok &= np.all((u[:, None] >= rect[..., 0]) & (u[:, None] <= rect[..., 1])
-                 & (v[:, None] >= rect[..., 2]) & (v[:, None] <= rect[..., 3]), axis=1)
-    ok &= np.all(tree.dir_forest.corner[np.maximum(leaf, 0)] >= 0, axis=(1, 2))
+    # leaves inside the baked rectangle with every corner sampled answer all their rays;
+    # elsewhere each ray is checked
+    check = np.flatnonzero(ok & ~np.all(tree.leaf_ok[np.maximum(leaf, 0)], axis=1))
+    if len(check):
+        rect = tree.dir_rect[trees[check]]
+        uc, vc = u[check, None], v[check, None]
+        ok[check] = np.all((uc >= rect[..., 0]) & (uc <= rect[..., 1]) & (vc >= rect[..., 2])
+                           & (vc <= rect[..., 3]), axis=1) \
+            & np.all(tree.dir_forest.corner[leaf[check]] >= 0, axis=(1, 2))
     outside = np.concatenate([np.flatnonzero(inside), q[~ok]])
     k = np.flatnonzero(ok)
+    if len(k) == len(ok):
+        k = slice(None)
     return Located(ray=q[k], alpha=alpha[k], beta=beta[k], trees=trees[k], leaf=leaf[k],
                    lx=lx[k], ly=ly[k]), outside

@@ -93,7 +93,11 @@ class Forest:
         the tree was not built. Points on a shared cell edge go to the upper cell, except at
         the domain's upper end (clamped into the last cell)."""
         fx, fy = self.normalized(trees, x, y)
-        node = self.root[trees].copy()
+        return self.descend(self.root[trees], fx, fy)
+
+    def descend(self, node, fx, fy):
+        """Forest.locate from ``node`` (-1: tree not built), a node containing the points at
+        normalized domain coordinates (fx, fy)."""
         ok = node >= 0
         nd = np.where(ok, node, 0)
         while True:
@@ -137,3 +141,48 @@ class Forest:
     def from_arrays(cls, arrays, prefix: str) -> "Forest":
         return cls(**{k: arrays[f"{prefix}.{k}"] for k in
                       ("domain", "root", "child", "level", "ix", "iy", "corner")})
+
+
+# Memory a DenseLocator's table may take (int32 entries): a grid of 2^L x 2^L cells per built
+# tree at the finest level L that fits.
+LOCATOR_BUDGET_BYTES = 64 << 20
+
+
+class DenseLocator:
+    """Leaf search by table: for every built tree, a 2^L x 2^L grid holding the node at level
+    <= L that covers each cell (L the forest's deepest level, or shallower to fit the memory
+    budget). One table read replaces the descent to level L; deeper nodes are descended from
+    there. Same answers as Forest.locate: cell indices floor(f * 2^L) are exact (powers of
+    two), and the clamp to the last cell is the descent's."""
+
+    def __init__(self, forest: Forest, budget_bytes: int = LOCATOR_BUDGET_BYTES):
+        self.forest = forest
+        built = np.flatnonzero(forest.root >= 0)
+        level = forest.max_level
+        while level > 0 and len(built) * 4 ** level * 4 > budget_bytes:
+            level -= 1
+        self.level, side = level, 1 << level
+        self.offset = -np.ones(len(forest.root), np.int64)
+        self.offset[built] = np.arange(len(built)) * side * side
+        self.table = np.full(len(built) * side * side, -1, np.int32)
+        tree = forest.tree_of_nodes()
+        for lv in range(level + 1):
+            nodes = np.flatnonzero((forest.level == lv) & ((forest.child < 0) | (lv == level))
+                                   & (tree >= 0))
+            if len(nodes) == 0:
+                continue
+            sh = level - lv
+            span = np.arange(1 << sh)
+            cx = (forest.ix[nodes].astype(np.int64) << sh)[:, None, None] + span[None, None, :]
+            cy = (forest.iy[nodes].astype(np.int64) << sh)[:, None, None] + span[None, :, None]
+            self.table[self.offset[tree[nodes]][:, None, None] + cy * side + cx] = nodes[:, None, None]
+
+    def locate(self, trees, x, y):
+        """As Forest.locate."""
+        side = 1 << self.level
+        fx, fy = self.forest.normalized(trees, x, y)
+        off = self.offset[trees]
+        cx = np.minimum((fx * side).astype(np.int64), side - 1)
+        cy = np.minimum((fy * side).astype(np.int64), side - 1)
+        start = np.where(off >= 0, self.table[np.maximum(off, 0) + cy * side + cx], -1)
+        return self.forest.descend(start, fx, fy)

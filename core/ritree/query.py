@@ -117,18 +117,57 @@ def group_rows(keys: np.ndarray):
     return group, order[new]
 
 
-def blend(table_vals, sid, w, wd) -> np.ndarray:
-    """Weighted sums of samples: (n, K) sample ids with weights ``w`` for origins, points and
-    normals and ``wd`` for directions (perspective-scaled) -> (n, 12) float64, in blocks of
-    BLEND_BLOCK rays (float32 gather and sums)."""
-    n = len(sid)
+def blend(vals, rows, w) -> np.ndarray:
+    """Weighted sums ``w`` (n, K) of the items ``vals[rows]`` (rows (n,) into vals (G, K, 12))
+    -> (n, 12) float64, in blocks of BLEND_BLOCK rays (float32 gather and sums)."""
+    n = len(rows)
     out = np.empty((n, 12))
     for a in range(0, n, BLEND_BLOCK):
         b = min(a + BLEND_BLOCK, n)
-        v = table_vals[sid[a:b]]
-        out[a:b] = np.matmul(w[a:b, None, :].astype(np.float32), v)[:, 0]
-        out[a:b, 3:6] = np.matmul(wd[a:b, None, :].astype(np.float32), v[:, :, 3:6])[:, 0]
+        out[a:b] = np.matmul(w[a:b, None, :].astype(np.float32), vals[rows[a:b]])[:, 0]
     return out
+
+
+# Item of each (DQ k, slot j) of a ray by default: the DQ's corners 4k + j, and for slots 4, 5
+# the DQ's first two extras 16 + 4k, 16 + 4k + 1 (weight 0 unless the DQ uses its extras, which
+# then name the two they use). The items of one ray are distinct.
+DEFAULT_ITEMS = np.array([[4 * k + j for j in range(4)] + [16 + 4 * k, 16 + 4 * k + 1]
+                          for k in range(4)])
+
+
+@dataclass
+class SetItems:
+    """What a sample set can interpolate from: the 16 corners (item 4k + j: DQ k, corner j)
+    and each leaf's four extras (item 16 + 4k + e; id 0 and unusable where the leaf has
+    none). ``vals`` holds their values with the output direction multiplied by the
+    perspective weight (Forest.cube_scale), so one weighted sum blends every column."""
+
+    ids: np.ndarray          # (S, 32) sample ids
+    vals: np.ndarray         # (S, 32, 12) float32, scaled directions
+    corner_vals: np.ndarray  # (S, 16, 12) float32: vals[:, :16], contiguous
+    has_extra: np.ndarray    # (S, 4) the leaf stores extras
+
+    @classmethod
+    def of(cls, tree, table, s_leaf, s_ids, s_trees) -> "SetItems":
+        s = len(s_leaf)
+        ex_ids = np.zeros((s, 4, 4), np.int64)
+        ex_pos = np.zeros((s, 4, 4, 2))
+        has = np.zeros((s, 4), bool)
+        if len(tree.ex_node):
+            pos = np.minimum(np.searchsorted(tree.ex_node, s_leaf), len(tree.ex_node) - 1)
+            has = tree.ex_node[pos] == s_leaf
+            ex_ids = np.where(has[..., None], tree.ex_ids[pos], 0)
+            ex_pos = tree.ex_pos[pos].astype(np.float64)
+        lx = np.concatenate([np.broadcast_to(UNIT_CORNERS[:, 0], (s, 4, 4)), ex_pos[..., 0]], 2)
+        ly = np.concatenate([np.broadcast_to(UNIT_CORNERS[:, 1], (s, 4, 4)), ex_pos[..., 1]], 2)
+        scale = tree.dir_forest.cube_scale(s_leaf, s_trees, lx, ly)            # (S, 4, 8)
+        scale = np.concatenate([scale[:, :, :4].reshape(s, 16), scale[:, :, 4:].reshape(s, 16)],
+                               axis=1)
+        ids = np.concatenate([s_ids, ex_ids.reshape(s, 16)], axis=1)
+        vals = table.vals[ids]
+        vals[:, :, 3:6] *= scale[:, :, None].astype(np.float32)
+        return cls(ids=ids, vals=vals, corner_vals=np.ascontiguousarray(vals[:, :16]),
+                   has_extra=has)
 
 
 class TreeQuery:
@@ -187,13 +226,6 @@ class TreeQuery:
         s_ids = self.tree.dir_forest.corner[s_leaf].reshape(-1, 16)
         return set_of, s_leaf, s_ids, self.table.cls[s_ids], loc.trees[first]
 
-    def _corner_scale(self, s_leaf, s_trees) -> np.ndarray:
-        """(S, 16) perspective weights of the sets' corner samples (see Forest.cube_scale)."""
-        s = len(s_leaf)
-        return self.tree.dir_forest.cube_scale(
-            s_leaf, s_trees, np.broadcast_to(UNIT_CORNERS[:, 0], (s, 4, 4)),
-            np.broadcast_to(UNIT_CORNERS[:, 1], (s, 4, 4))).reshape(s, 16)
-
     # ------------------------------------------------------------------ the paper's policy
     def _ri(self, o, d, tmax, loc, res, ans, why, clock) -> int:
         tree, tab, opt = self.tree, self.table, self.opt
@@ -223,10 +255,11 @@ class TreeQuery:
         with clock("decide"):
             loc, set_of, pc = loc.take(go), set_of[go], pc[go]
             m = len(loc)
+            items = SetItems.of(tree, tab, s_leaf, s_ids, s_trees)
             unit_of, ufirst = group_rows(np.stack([set_of, pc], axis=1))
             u_set, u_pc = set_of[ufirst], pc[ufirst]
-            u_ids = s_ids[u_set]
-            u_usable = (s_cls[u_set] == u_pc[:, None]) & ~tab.null[u_ids]          # (U, 16)
+            u_ok = (tab.cls[items.ids[u_set]] == u_pc[:, None]) & ~tab.null[items.ids[u_set]]
+            u_ok[:, 16:] &= np.repeat(items.has_extra[u_set], 4, axis=1)      # (U, 32) usable
             # the DQs whose samples the thresholds compare: all, or those the bake could not
             # verify (split to the maximum depth: a shallower leaf's midpoint matched)
             u_checked = np.ones((len(u_set), 4), bool)
@@ -234,22 +267,22 @@ class TreeQuery:
                 u_checked = tree.dir_forest.level[s_leaf[u_set]] >= tree.params.direction_depth
             u_far = np.zeros(len(u_set), bool)      # units where some threshold may bite
             if per_sample:
-                u_far = self._may_be_far(s_leaf[u_set], u_ids, u_usable, u_pc, u_checked, ang,
-                                         dist)
+                # far_pairs' pretest on everything a ray of the unit can use: a unit that
+                # passes has no far pair among any ray's interpolants
+                used = u_ok & np.tile(np.repeat(u_checked, 4, axis=1), 2)
+                v = tab.vals[items.ids[u_set]].astype(np.float64)
+                u_far = may_have_far_pairs(v[..., 3:6], v[..., 0:3], used, ang, dist)
         with clock("weights"):
-            usable = u_usable[unit_of].reshape(m, 4, 4)
+            usable = u_ok[unit_of, :16].reshape(m, 4, 4)
             checked = u_checked[unit_of]
             thr_hit = np.zeros((m, 4), bool)            # DQs whose corners the thresholds cut
             fr = np.flatnonzero(u_far[unit_of])         # rays that need the pairwise tests
             if len(fr):
-                self._direction_thresholds(fr, unit_of, u_far, u_ids, u_usable, u_checked, loc,
-                                           usable, thr_hit, ang, dist)
-            w = np.zeros((m, 4, 6))                          # 4 corners + up to 2 extras
-            sid = np.zeros((m, 4, 6), np.int64)
-            sid[:, :, :4] = u_ids[unit_of].reshape(m, 4, 4)
+                self._direction_thresholds(fr, unit_of, u_far, items.ids[u_set], u_ok,
+                                           u_checked, loc, usable, thr_hit, ang, dist)
+            w = np.zeros((m, 4, 6))                     # per DQ: 4 corners + up to 2 extras
+            item = np.broadcast_to(DEFAULT_ITEMS, (m, 4, 6))
             dq_st = np.zeros((m, 4), np.int8)
-            is_extra = np.zeros((m, 4), bool)
-            ex_pos = np.zeros((m, 4, 2, 2))
             for k in range(4):
                 wk, sk = cell_weights(usable[:, k], loc.lx[:, k], loc.ly[:, k], opt.extrapolation)
                 w[:, k, :4] = wk
@@ -260,23 +293,25 @@ class TreeQuery:
                                        loc.ly[fail, k], usable[fail, k], pc[fail],
                                        opt.extrapolation)
                     g = fail[ea.rows]
+                    if len(g) == 0:
+                        continue
+                    if not item.flags.writeable:
+                        item = item.copy()
                     w[g, k] = ea.w
-                    sid[g, k, 4:] = ea.ids
-                    ex_pos[g, k] = ea.pos
+                    item[g, k, 4:] = 16 + 4 * k + ea.extra
                     dq_st[g, k] = np.where(ea.extrapolated, EXTRAPOLATED, EXTRA)
-                    is_extra[g, k] = True
+            is_extra = (dq_st == EXTRA) | (dq_st == EXTRAPOLATED)
             # viewpoint level
             dq_ok = dq_st != FAIL
             thr_q = np.zeros(m, bool)
-            scale = None
             if per_sample and len(fr):
-                self._viewpoint_thresholds(fr, usable, w, sid, is_extra, dq_ok, checked, loc,
-                                           thr_hit, thr_q, ang, dist)
+                self._viewpoint_thresholds(fr, items.ids[set_of[fr, None], item[fr].reshape(
+                    len(fr), 24)], usable, w, is_extra, dq_ok, checked, loc, thr_hit, thr_q, ang,
+                    dist)
             elif thresholds and not per_sample:
                 # the intermediate rays f*(R_VP): parallel query rays from the four viewpoints
-                scale = self._scales(loc, set_of, s_leaf, s_trees, is_extra, ex_pos)
-                inter = blend(tab.vals, sid.reshape(4 * m, 6), w.reshape(4 * m, 6),
-                              (w * scale).reshape(4 * m, 6)).reshape(m, 4, 12)
+                inter = np.einsum("nkj,nkjc->nkc", w.astype(np.float32),
+                                  items.vals[set_of[:, None, None], item]).astype(np.float64)
                 idir = inter[:, :, 3:6] / np.maximum(
                     np.linalg.norm(inter[:, :, 3:6], axis=2), 1e-300)[:, :, None]
                 r2, blocks = far_pairs(idir, inter[:, :, 0:3], dq_ok, ang, dist)
@@ -289,14 +324,8 @@ class TreeQuery:
             few &= thr
         with clock("blend"):
             cand = np.flatnonzero(~few & thr)
-            weights = (W[cand, :, None] * w[cand]).reshape(len(cand), 24)
-            if scale is None:
-                scale = self._scales(loc.take(cand), set_of[cand], s_leaf, s_trees,
-                                     is_extra[cand], ex_pos[cand])
-            else:
-                scale = scale[cand]
-            out = self._blend_rows(sid[cand].reshape(len(cand), 24), weights,
-                                   scale.reshape(len(cand), 24), is_extra[cand].any(axis=1))
+            out, best = self._blend(items, set_of[cand], W[cand], w[cand], item[cand],
+                                    is_extra[cand].any(axis=1))
             od, nm = out[:, 3:6], out[:, 9:12]
             lod, lnm = np.linalg.norm(od, axis=1), np.linalg.norm(nm, axis=1)
             blend_ok = np.ones(m, bool)
@@ -313,14 +342,35 @@ class TreeQuery:
             g = cand[gc]
             self._fill(res, ans, rows[g], o, d, tmax, out[gc, 0:3], od[gc] / lod[gc, None],
                        out[gc, 6:9], nm[gc] / lnm[gc, None], pc[g],
-                       self._patch_of(sid[g].reshape(len(g), 24), weights[gc]))
+                       tab.patch[items.ids[set_of[g], best[gc]]].astype(np.int64))
             if opt.null_interp:
-                flat = sid[:, :, :4].reshape(m, 16)
+                flat = s_ids[set_of]
                 nul = tab.null[flat]
                 r = np.flatnonzero(few & np.any(nul & (tab.cls[flat] == pc[:, None]), axis=1))
                 if len(r):
                     self._null(loc.take(r), flat[r], pc[r], o, d, tmax, res, ans, why)
         return len(two)
+
+    def _blend(self, items, set_of, W, w, item, has_extra):
+        """Blend rays of sets ``set_of`` with viewpoint weights W (n, 4) and per-DQ slot
+        weights w (n, 4, 6) over items ``item`` (n, 4, 6); rays without extras blend their 16
+        corners only. Returns (values (n, 12), the heaviest item of each ray (n,))."""
+        n = len(set_of)
+        out = np.empty((n, 12))
+        best = np.empty(n, np.int64)
+        wq = W[:, :, None]
+        r = np.flatnonzero(~has_extra)
+        wr = (wq[r] * w[r, :, :4]).reshape(len(r), 16)
+        out[r] = blend(items.corner_vals, set_of[r], wr)
+        best[r] = np.argmax(np.abs(wr), axis=1)
+        r = np.flatnonzero(has_extra)
+        if len(r):
+            wr = np.zeros((len(r), 32))
+            np.put_along_axis(wr, item[r].reshape(len(r), 24),
+                              (wq[r] * w[r]).reshape(len(r), 24), axis=1)
+            out[r] = blend(items.vals, set_of[r], wr)
+            best[r] = np.argmax(np.abs(wr), axis=1)
+        return out, best
 
     def _first_hit_class(self, o, d, tmax, rows, set_of, two_sets, s_ids) -> np.ndarray:
         """Class of the exact first hit (-1: miss) of rays ``rows`` against only the distinct
@@ -333,39 +383,14 @@ class TreeQuery:
         hit = self.st.tracer.intersect(o[rows], d[rows], tmax=tmax[rows], patches=cand)
         return np.where(hit.hit, hit.cls, -1)
 
-    def _unit_extras(self, u_leaf, u_pc):
-        """The extra samples of the units' leaves: ids (U, 4, 4) and which are usable for the
-        unit's class (U, 4, 4)."""
-        tree, tab = self.tree, self.table
-        ids = np.zeros(u_leaf.shape + (4,), np.int64)
-        ok = np.zeros(u_leaf.shape + (4,), bool)
-        if len(tree.ex_node):
-            pos = np.minimum(np.searchsorted(tree.ex_node, u_leaf), len(tree.ex_node) - 1)
-            has = tree.ex_node[pos] == u_leaf
-            ids = np.where(has[..., None], tree.ex_ids[pos], 0)
-            ok = has[..., None] & (tab.cls[ids] == u_pc[:, None, None]) & ~tab.null[ids]
-        return ids, ok
-
-    def _may_be_far(self, u_leaf, u_ids, u_usable, u_pc, u_checked, ang, dist) -> np.ndarray:
-        """(U,) units where a pairwise threshold may cut something: the test of far_pairs on
-        everything a ray of the unit can use (checked usable corners and extras); a unit that
-        passes has no far pair among any ray's interpolants."""
-        ex_ids, ex_ok = self._unit_extras(u_leaf, u_pc)
-        u = len(u_ids)
-        ids = np.concatenate([u_ids, ex_ids.reshape(u, 16)], axis=1)
-        used = np.concatenate([u_usable & np.repeat(u_checked, 4, axis=1),
-                               (ex_ok & u_checked[:, :, None]).reshape(u, 16)], axis=1)
-        v = self.table.vals[ids].astype(np.float64)
-        return may_have_far_pairs(v[..., 3:6], v[..., 0:3], used, ang, dist)
-
-    def _direction_thresholds(self, fr, unit_of, u_far, u_ids, u_usable, u_checked, loc,
-                              usable, thr_hit, ang, dist):
+    def _direction_thresholds(self, fr, unit_of, u_far, u_ids, u_ok, u_checked, loc, usable,
+                              thr_hit, ang, dist):
         """Paper 5.3 at the direction level for rays ``fr``: far corners of a DQ are not usable
         (an outlier is dropped). Far pairs are found once per unit; the outlier dropped depends
         on where the ray falls in the cell."""
         fu = np.flatnonzero(u_far)
-        v = self.table.vals[u_ids[fu]].astype(np.float64)
-        used = u_usable[fu] & np.repeat(u_checked[fu], 4, axis=1)
+        v = self.table.vals[u_ids[fu, :16]].astype(np.float64)
+        used = u_ok[fu, :16] & np.repeat(u_checked[fu], 4, axis=1)
         rws, far = far_pairs(v[..., 3:6], v[..., 0:3], used, ang, dist)
         slot = np.full(len(u_far), -1)
         slot[fu[rws]] = np.arange(len(rws))
@@ -378,16 +403,17 @@ class TreeQuery:
                 f[:, k, :, k], usable[rr, k], UNIT_CORNERS,
                 np.stack([loc.lx[rr, k], loc.ly[rr, k]], 1))
 
-    def _viewpoint_thresholds(self, fr, usable, w, sid, is_extra, dq_ok, checked, loc, thr_hit,
+    def _viewpoint_thresholds(self, fr, sid, usable, w, is_extra, dq_ok, checked, loc, thr_hit,
                               thr_q, ang, dist):
-        """Paper 5.3 at the viewpoint level for rays ``fr``: DQs are far apart when any of their
-        interpolants are (an extra-sample triangle's samples for extras); a DQ with a far pair
-        inside is unusable, then an outlying DQ is dropped."""
+        """Paper 5.3 at the viewpoint level for rays ``fr`` (their (n, 24) interpolant sample
+        ids ``sid``): DQs are far apart when any of their interpolants are (an extra-sample
+        triangle's samples for extras); a DQ with a far pair inside is unusable, then an
+        outlying DQ is dropped."""
         n = len(fr)
         member = np.concatenate([usable[fr], np.zeros((n, 4, 2), bool)], axis=2)
         member = np.where(is_extra[fr, :, None], w[fr] != 0, member)
         member &= dq_ok[fr, :, None] & checked[fr, :, None]
-        v = self.table.vals[sid[fr].reshape(n, 24)].astype(np.float64)
+        v = self.table.vals[sid].astype(np.float64)
         rws, far = far_pairs(v[..., 3:6], v[..., 0:3], member.reshape(n, 24), ang, dist)
         blocks = far.reshape(-1, 4, 6, 4, 6).any(axis=4).any(axis=2)          # (R, 4, 4)
         inner = np.diagonal(blocks, axis1=1, axis2=2)                           # (R, 4)
@@ -396,31 +422,6 @@ class TreeQuery:
         dq_ok[r] &= ~inner
         dq_ok[r], thr_q[r] = drop_outlier(blocks, dq_ok[r], UNIT_CORNERS,
                                           np.stack([loc.alpha[r], loc.beta[r]], 1))
-
-    def _scales(self, loc, set_of, s_leaf, s_trees, is_extra, ex_pos) -> np.ndarray:
-        """(m, 4, 6) perspective weights of each ray's interpolants: corners once per set,
-        extras per ray."""
-        m = len(loc)
-        scale = np.ones((m, 4, 6))
-        if m == 0:
-            return scale
-        scale[:, :, :4] = self._corner_scale(s_leaf, s_trees)[set_of].reshape(m, 4, 4)
-        r, k = np.nonzero(is_extra)
-        if len(r):
-            scale[r, k, 4:] = self.tree.dir_forest.cube_scale(
-                loc.leaf[r, k], loc.trees[r, k], ex_pos[r, k, :, 0], ex_pos[r, k, :, 1])
-        return scale
-
-    def _blend_rows(self, sid, weights, scale, has_extra) -> np.ndarray:
-        """Blend (n, 24) interpolants; rays without extras blend their 16 corners only."""
-        out = np.empty((len(sid), 12))
-        corners = (np.arange(24) % 6) < 4
-        for sel, cols in ((~has_extra, corners), (has_extra, slice(None))):
-            r = np.flatnonzero(sel)
-            if len(r):
-                wr = weights[r][:, cols]
-                out[r] = blend(self.table.vals, sid[r][:, cols], wr, wr * scale[r][:, cols])
-        return out
 
     def _null(self, loc, flat, pc, o, d, tmax, res, ans, why):
         """Rays (``loc``, their 16 sample ids ``flat``) that had too few usable interpolants:
@@ -441,7 +442,7 @@ class TreeQuery:
         ok = np.flatnonzero(qst != FAIL)
         if len(ok) == 0:
             return
-        out = blend(tab.vals, flat[ok], weights[ok], weights[ok])
+        out = blend(tab.vals[flat[ok]], np.arange(len(ok)), weights[ok])
         pt, nm = out[:, 6:9], out[:, 9:12]
         ln = np.linalg.norm(nm, axis=1)
         keep = ln > MIN_BLEND_NORM
@@ -475,8 +476,8 @@ class TreeQuery:
             wdq = np.stack([bilinear_weights(loc.lx[g, k], loc.ly[g, k]) for k in range(4)], 1)
             weights = (wq[:, :, None] * wdq).reshape(len(g), 16)
             sg = set_of[g]
-            out = blend(tab.vals, s_ids[sg], weights,
-                        weights * self._corner_scale(s_leaf, s_trees)[sg])
+            items = SetItems.of(self.tree, tab, s_leaf, s_ids, s_trees)
+            out = blend(items.corner_vals, sg, weights)
             od, nm = out[:, 3:6], out[:, 9:12]
             ans[rows[g]] = FULL
             self._fill(res, ans, rows[g], o, d, tmax, out[:, 0:3],
@@ -485,10 +486,11 @@ class TreeQuery:
                        tab.patch[s_ids[sg, 0]].astype(np.int64))
 
     # ------------------------------------------------------------------ results
-    def _patch_of(self, sid, weights):
-        """The patch of the heaviest interpolant (a representative patch id)."""
+    def _patch_of(self, ids, weights):
+        """The patch of the heaviest interpolant (a representative patch id); ``ids`` (n, K)
+        the sample ids the (n, K) weights refer to."""
         best = np.argmax(np.abs(weights), axis=1)
-        return self.table.patch[sid[np.arange(len(sid)), best]].astype(np.int64)
+        return self.table.patch[ids[np.arange(len(ids)), best]].astype(np.int64)
 
     def _fill(self, res, ans, rows, o, d, tmax, oo, od, pt, nm, cls, patch, null=False):
         dd = d[rows]

@@ -18,7 +18,7 @@ import numpy as np
 
 from .cache import TreeCacheError, fingerprint, load_tree, save_tree
 from .codec import decode_points, decode_unit_vectors, encode_points, encode_unit_vectors
-from .quadtree import Forest
+from .quadtree import DenseLocator, Forest
 
 SAMPLE_FIELDS = ("out_o", "out_d", "point", "normal", "patch", "null", "tree")
 # Version of the tree's array layout inside a .rit file (the file format has its own version):
@@ -207,6 +207,32 @@ class RITree:
     def table(self) -> SampleTable:
         """The samples decoded once (the first use decodes a packed file's samples)."""
         return SampleTable.of(self.samples, self.class_of)
+
+    @cached_property
+    def vp_locator(self) -> DenseLocator:
+        return DenseLocator(self.vp_forest)
+
+    @cached_property
+    def dir_locator(self) -> DenseLocator:
+        return DenseLocator(self.dir_forest)
+
+    @cached_property
+    def leaf_ok(self) -> np.ndarray:
+        """(K,) direction-tree nodes whose four corners are sampled and whose cell lies inside
+        its tree's baked rectangle: every query located in such a leaf can be answered."""
+        f = self.dir_forest
+        ok = np.all(f.corner >= 0, axis=1)
+        tree = f.tree_of_nodes()
+        ok &= tree >= 0
+        t = np.maximum(tree, 0)
+        dom, rect = f.domain[t], self.dir_rect[t]
+        size = np.exp2(-f.level.astype(np.float64))
+        for axis, idx in ((0, f.ix), (1, f.iy)):
+            lo, span = dom[:, 2 * axis], dom[:, 2 * axis + 1] - dom[:, 2 * axis]
+            c0 = lo + span * idx * size
+            c1 = lo + span * (idx + 1) * size
+            ok &= (c0 >= rect[:, 2 * axis]) & (c1 <= rect[:, 2 * axis + 1])
+        return ok
 
     def sample_class(self, ids: np.ndarray) -> np.ndarray:
         """Class of sample ids (-1: misses the object)."""
