@@ -161,7 +161,7 @@ class RirayRenderEngine(bpy.types.RenderEngine):
                     exact = st.object_function(o[a + hit], d[a + hit])
                     ang[hit] = angle_error_deg(used.out_dir, exact.out_dir, used.null,
                                                exact.null)
-            return col, tr, ang, stats["object_time_s"], len(hit)
+            return col, tr, ang, stats["object_cpu_s"], len(hit)
 
         def progress(frac):
             if self.test_break():

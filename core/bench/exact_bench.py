@@ -71,9 +71,9 @@ def bench_scene(name: str, size: int = 300, camera: str = "close", workers: int 
     return {
         "scene": name, "camera": camera, "size": size,
         "scene_s": t1 - t0, "build_s": t2 - t1, "wall_s": float(s["wall_s"]),
-        "object_cpu_s": float(c["object_time_s"]), "total_cpu_s": float(c["total_time_s"]),
+        "object_cpu_s": float(c["object_cpu_s"]), "total_cpu_s": float(c["total_cpu_s"]),
         "object_rays": int(c["object_candidates"]), "object_hits": int(c["object_hits"]),
-        "object_rays_per_s": c["object_candidates"] / max(c["object_time_s"], 1e-9),
+        "object_rays_per_s": c["object_candidates"] / max(c["object_cpu_s"], 1e-9),
         "pairs_per_ray": c["pairs"] / rays, "newton_iters_per_ray": c["newton_iters"] / rays,
         "fallback_pairs_per_ray": c["fallback_pairs"] / rays, "events_per_ray": c["events"] / rays,
         "null_rays": int(c.get("null_rays", 0)),

@@ -49,7 +49,7 @@ import numpy as np
 
 from ..parallel import map_chunks, workers_default
 from ..render.camera import camera_rays
-from ..render.exact import PIXEL_CHUNK, SceneTracer, render_pixels
+from ..render.exact import SceneTracer, render_pixels, share_size
 from ..render.interpolated import psnr
 from ..ritree import tree as ritree
 from ..ritree.bake import bake
@@ -212,7 +212,8 @@ def measure_pass(st, tree, cam, size, options, order=0, workers=None) -> dict:
                 "hit_disagree": int(np.sum(ri.hit != rx.hit))}
 
     t0 = time.perf_counter()
-    parts = map_chunks(work, len(o), PIXEL_CHUNK, workers)
+    workers = workers_default() if workers is None else workers
+    parts = map_chunks(work, len(o), share_size(len(o), workers), workers)
     wall = time.perf_counter() - t0
     s_i, s_x = _sum(p["s_i"] for p in parts), _sum(p["s_x"] for p in parts)
     answers = np.concatenate([p["answers"] for p in parts])
@@ -266,8 +267,8 @@ def measure_configs(st, tree, cam, size, configs: dict, repeats, workers) -> dic
             passes[k].append(measure_pass(st, tree, cam, size, opt, order=r % 2, workers=workers))
     all_p = [p for ps in passes.values() for p in ps]
     first = all_p[0]
-    ex_obj = [p["s_x"]["object_time_s"] for p in all_p]
-    ex_tot = [p["s_x"]["total_time_s"] for p in all_p]
+    ex_obj = [p["s_x"]["object_cpu_s"] for p in all_p]
+    ex_tot = [p["s_x"]["total_cpu_s"] for p in all_p]
     rows = {"exact": {"rays_traced": first["object_rays"], "object_rays": first["object_rays"],
                       "object_hits": first["object_hits"], "interpolated": 0,
                       "traced_fraction": 1.0 if first["object_rays"] else 0.0,
@@ -280,11 +281,11 @@ def measure_configs(st, tree, cam, size, configs: dict, repeats, workers) -> dic
     images = {"exact": first["img_x"]}
     for k, ps in passes.items():
         p = ps[0]
-        io = [q["s_i"]["object_time_s"] for q in ps]
-        it = [q["s_i"]["total_time_s"] for q in ps]
+        io = [q["s_i"]["object_cpu_s"] for q in ps]
+        it = [q["s_i"]["total_cpu_s"] for q in ps]
         # the same-pass exact times give a per-pass speed-up (noise cancels within a pass)
-        sp_o = [q["s_x"]["object_time_s"] / max(q["s_i"]["object_time_s"], 1e-9) for q in ps]
-        sp_t = [q["s_x"]["total_time_s"] / max(q["s_i"]["total_time_s"], 1e-9) for q in ps]
+        sp_o = [q["s_x"]["object_cpu_s"] / max(q["s_i"]["object_cpu_s"], 1e-9) for q in ps]
+        sp_t = [q["s_x"]["total_cpu_s"] / max(q["s_i"]["total_cpu_s"], 1e-9) for q in ps]
         rows[k] = {"rays_traced": p["rays_traced"], "object_rays": p["object_rays"],
                    "object_hits": int(p["s_i"]["object_hits"]),
                    "interpolated": p["interpolated"],

@@ -1,8 +1,11 @@
 """Rendering through the RI-Tree, measured against the exact renderer in the same run.
 
-Each chunk of pixels is rendered twice in the same process, interleaved: once with the exact
-object function, once with the tree (``ritree.query.TreeQuery``), so the *object-only* times
-compare the same rays under the same machine load (paper, section 6). Outputs:
+The frame is cut into shares (one per worker process; exact.share_size). Each share is rendered
+twice in the same process, interleaved: once with the exact object function, once with the tree
+(``ritree.query.TreeQuery``, one staged call over the whole share), the order alternating from
+share to share, so the *object-only* times compare the same rays under the same machine load
+(paper, section 6). Times are CPU seconds of the worker's CPU clock (``*_cpu_s``) and wall
+seconds (``*_wall_s``). Outputs:
 - the interpolated image (and the exact one, as reference),
 - the traced mask (white = traced, as in the paper's Figures 15-17),
 - the angular-error image (Figure 14's colouring: grey 0-2 deg, lighter = smaller; green
@@ -17,12 +20,12 @@ import time
 
 import numpy as np
 
-from ..parallel import map_chunks
+from ..parallel import map_chunks, workers_default
 from ..ritree.interp import angle_between
-from ..ritree.query import (ANSWER_NAMES, EXTRAPOLATED_S, FULL, NULL_S, OUTSIDE, TRACED, WHY_NAMES,
-                           TreeQuery)
+from ..ritree.query import (ANSWER_NAMES, EXTRAPOLATED_S, FULL, NULL_S, OUTSIDE, TRACED,
+                           TRACING_STAGES, WHY_NAMES, TreeQuery)
 from .camera import camera_rays
-from .exact import PIXEL_CHUNK, RenderResult, SceneTracer, render_pixels
+from .exact import RenderResult, SceneTracer, render_pixels, share_size
 
 ERROR_GREY_MAX_DEG = 2.0     # Figure 14: greyscale up to 2 degrees, green beyond
 
@@ -48,25 +51,32 @@ def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
             box.update(ans=ans, why=why, res=res)
             return res, qs
 
-        col, s_i, hit_i, cand = render_pixels(st, oo, dd, tree_fn)
         n = b - a
         answers = np.full(n, -1, np.int8)
         whys = np.zeros(n, np.int8)
         err = np.full(n, np.nan)
-        out = {"interp": s_i}
+        out = {}
         col_x = None
-        answers[cand] = box["ans"]
-        whys[cand] = box["why"]
+        keep = {}
+
+        def exact_fn(oc, dc, tmax):
+            res = st.object_function(oc, dc, tmax)
+            keep["res"] = res
+            return res, {}
+
+        runs = [("interp", tree_fn)] + ([("exact", exact_fn)] if reference else [])
+        if (a // size) % 2:
+            runs.reverse()
+        for name, fn in runs:
+            col_r, s_r, hit_r, cand = render_pixels(st, oo, dd, fn)
+            out[name] = s_r
+            if name == "interp":
+                col, hit_i = col_r, hit_r
+                answers[cand] = box["ans"]
+                whys[cand] = box["why"]
+            else:
+                col_x = col_r
         if reference:
-            keep = {}
-
-            def exact_fn(oc, dc, tmax):
-                res = st.object_function(oc, dc, tmax)
-                keep["res"] = res
-                return res, {}
-
-            col_x, s_x, _, _ = render_pixels(st, oo, dd, exact_fn)
-            out["exact"] = s_x
             ri, rx = box["res"], keep["res"]
             interp = (box["ans"] >= FULL) & (box["ans"] <= EXTRAPOLATED_S) & ri.hit & rx.hit \
                 & ~rx.null
@@ -75,8 +85,10 @@ def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
             out["null_disagree"] = int(np.sum((box["ans"] == NULL_S) & ~rx.null))
         return col, col_x, answers, whys, err, out, hit_i
 
+    workers = workers_default() if workers is None else workers
+    size = share_size(len(o), workers)
     t0 = time.perf_counter()
-    parts = map_chunks(work, len(o), PIXEL_CHUNK, workers, progress)
+    parts = map_chunks(work, len(o), size, workers, progress)
     wall = time.perf_counter() - t0
     img = np.concatenate([p[0] for p in parts]).reshape(h, w, 3)
     answers = np.concatenate([p[2] for p in parts])
@@ -97,8 +109,12 @@ def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
                "mode": "interpolated", "policy": query.opt.policy,
                "object_pixels": n_obj, "rays_traced": int(traced.sum()),
                "traced_fraction_of_object": round(float(traced[objmask].mean()) if n_obj else 0.0, 5),
-               "interp_object_only_cpu_s": round(si["object_time_s"], 4),
-               "interp_total_cpu_s": round(si["total_time_s"], 4), "wall_s": round(wall, 4)}
+               "interp_object_only_cpu_s": round(si["object_cpu_s"], 4),
+               "interp_total_cpu_s": round(si["total_cpu_s"], 4),
+               "interp_object_only_wall_s": round(si["object_wall_s"], 4),
+               "interp_total_wall_s": round(si["total_wall_s"], 4),
+               "query_own_cpu_s": round(query_own_cpu(si), 4),
+               "shares": len(parts), "wall_s": round(wall, 4)}
     masks = {"traced": traced.reshape(h, w), "object": objmask.reshape(h, w),
              "angle_error_deg": err.reshape(h, w)}
     if reference:
@@ -106,10 +122,14 @@ def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
         exact = np.concatenate([p[1] for p in parts]).reshape(h, w, 3)
         e = err[np.isfinite(err)]
         summary.update({
-            "exact_object_only_cpu_s": round(sx["object_time_s"], 4),
-            "exact_total_cpu_s": round(sx["total_time_s"], 4),
-            "object_only_speedup": round(sx["object_time_s"] / max(si["object_time_s"], 1e-9), 3),
-            "total_speedup": round(sx["total_time_s"] / max(si["total_time_s"], 1e-9), 3),
+            "exact_object_only_cpu_s": round(sx["object_cpu_s"], 4),
+            "exact_total_cpu_s": round(sx["total_cpu_s"], 4),
+            "exact_object_only_wall_s": round(sx["object_wall_s"], 4),
+            "exact_total_wall_s": round(sx["total_wall_s"], 4),
+            "object_only_speedup": round(sx["object_cpu_s"] / max(si["object_cpu_s"], 1e-9), 3),
+            "total_speedup": round(sx["total_cpu_s"] / max(si["total_cpu_s"], 1e-9), 3),
+            "query_own_fraction_of_exact_object_only": round(
+                query_own_cpu(si) / max(sx["object_cpu_s"], 1e-9), 4),
             "angle_error_deg_mean": round(float(e.mean()), 5) if len(e) else None,
             "angle_error_deg_p99": round(float(np.percentile(e, 99)), 5) if len(e) else None,
             "angle_error_deg_max": round(float(e.max()), 5) if len(e) else None,
@@ -121,6 +141,13 @@ def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
         masks["exact"] = exact
     stats["summary"] = summary
     return RenderResult(image=img, stats=stats, masks=masks)
+
+
+def query_own_cpu(stats: dict) -> float:
+    """CPU seconds of the RI-Tree query's own work in summed render stats: every query stage
+    but the exact tracing it calls (query.TRACING_STAGES)."""
+    return sum(v for k, v in stats.items() if k.startswith("query_") and k.endswith("_cpu_s")
+               and k[len("query_"):-len("_cpu_s")] not in TRACING_STAGES)
 
 
 def _sum(dicts):

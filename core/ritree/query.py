@@ -185,7 +185,10 @@ class TreeQuery:
         self.tree, self.st = tree, st
         self.opt = (options or QueryOptions()).validate()
         self.material = st.scene.object.material
+        # load-time work, done once (and before any fork, so worker processes share it):
+        # decoded samples, dense leaf tables, answerable-leaf flags
         self.table = tree.table
+        tree.vp_locator, tree.dir_locator, tree.leaf_ok
 
     def __call__(self, o, d, tmax=None):
         """(ObjectRays, answers (N,), why (N,), stats) for rays o, d (unit). ``stats`` holds

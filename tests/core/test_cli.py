@@ -21,9 +21,9 @@ from riray.scene.samples import GLASS_SPHERE_RADIUS, build
 
 SUMMARY_KEYS = {"scene", "camera", "width", "height", "mode", "rays_traced", "object_pixels",
                 "object_only_cpu_s", "total_cpu_s", "wall_s", "build_s", "object_rays_per_cpu_s"}
-COUNT_KEYS = {"camera_rays", "object_candidates", "object_hits", "events", "object_time_s",
-              "total_time_s", "output_rays", "null_rays", "pairs", "newton_iters",
-              "fallback_pairs"}
+COUNT_KEYS = {"camera_rays", "object_candidates", "object_hits", "events", "object_cpu_s",
+              "object_wall_s", "total_cpu_s", "total_wall_s", "output_rays", "null_rays", "pairs",
+              "newton_iters", "fallback_pairs"}
 # name -> (dtype kind, trailing shape) of the trace-rays output arrays (docs/cli.md)
 TRACE_ARRAYS = {"hit": ("b", ()), "null": ("b", ()), "out_origin": ("f", (3,)),
                 "out_dir": ("f", (3,)), "t_first": ("f", ()), "point": ("f", (3,)),
