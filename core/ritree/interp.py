@@ -66,13 +66,10 @@ def cell_weights(usable, lx, ly, extrapolation=None):
     barycentric on their triangle (with the extrapolation rule), fewer -> FAIL (zero weights).
     Returns (weights, status)."""
     usable = np.asarray(usable, bool)
-    n = len(usable)
-    cnt = usable.sum(axis=1)
-    w = np.zeros((n, 4))
-    status = np.full(n, FAIL, np.int8)
+    cnt = np.count_nonzero(usable, axis=1)
     four = cnt == 4
-    w[four] = bilinear_weights(lx[four], ly[four])
-    status[four] = BILINEAR
+    w = bilinear_weights(lx, ly) * four[:, None]
+    status = np.where(four, BILINEAR, FAIL).astype(np.int8)
     three = np.flatnonzero(cnt == 3)
     if len(three):
         idx = np.argsort(~usable[three], axis=1, kind="stable")[:, :3]   # the usable corners

@@ -281,8 +281,10 @@ class TreeQuery:
             thr_hit = np.zeros((m, 4), bool)            # DQs whose corners the thresholds cut
             fr = np.flatnonzero(u_far[unit_of])         # rays that need the pairwise tests
             if len(fr):
-                self._direction_thresholds(fr, unit_of, u_far, items.ids[u_set], u_ok,
-                                           u_checked, loc, usable, thr_hit, ang, dist)
+                far, far_of = self._unit_far_pairs(u_far, items.ids[u_set], u_ok, u_checked,
+                                                   ang, dist)
+                fr_far = far[far_of[unit_of[fr]]]                               # (R, 32, 32)
+                self._direction_thresholds(fr, fr_far, loc, usable, thr_hit)
             w = np.zeros((m, 4, 6))                     # per DQ: 4 corners + up to 2 extras
             item = np.broadcast_to(DEFAULT_ITEMS, (m, 4, 6))
             dq_st = np.zeros((m, 4), np.int8)
@@ -308,9 +310,8 @@ class TreeQuery:
             dq_ok = dq_st != FAIL
             thr_q = np.zeros(m, bool)
             if per_sample and len(fr):
-                self._viewpoint_thresholds(fr, items.ids[set_of[fr, None], item[fr].reshape(
-                    len(fr), 24)], usable, w, is_extra, dq_ok, checked, loc, thr_hit, thr_q, ang,
-                    dist)
+                self._viewpoint_thresholds(fr, fr_far, item, usable, w, is_extra, dq_ok, checked,
+                                           loc, thr_hit, thr_q)
             elif thresholds and not per_sample:
                 # the intermediate rays f*(R_VP): parallel query rays from the four viewpoints
                 inter = np.einsum("nkj,nkjc->nkc", w.astype(np.float32),
@@ -386,41 +387,49 @@ class TreeQuery:
         hit = self.st.tracer.intersect(o[rows], d[rows], tmax=tmax[rows], patches=cand)
         return np.where(hit.hit, hit.cls, -1)
 
-    def _direction_thresholds(self, fr, unit_of, u_far, u_ids, u_ok, u_checked, loc, usable,
-                              thr_hit, ang, dist):
-        """Paper 5.3 at the direction level for rays ``fr``: far corners of a DQ are not usable
-        (an outlier is dropped). Far pairs are found once per unit; the outlier dropped depends
-        on where the ray falls in the cell."""
+    def _unit_far_pairs(self, u_far, u_ids, u_ok, u_checked, ang, dist):
+        """Paper 5.3's far pairs among the 32 items (usable, checked) of the units ``u_far``,
+        once per unit: (far (F, 32, 32), row of each unit in it (U,), -1 where not tested)."""
         fu = np.flatnonzero(u_far)
-        v = self.table.vals[u_ids[fu, :16]].astype(np.float64)
-        used = u_ok[fu, :16] & np.repeat(u_checked[fu], 4, axis=1)
+        v = self.table.vals[u_ids[fu]].astype(np.float64)
+        used = u_ok[fu] & np.tile(np.repeat(u_checked[fu], 4, axis=1), 2)
         rws, far = far_pairs(v[..., 3:6], v[..., 0:3], used, ang, dist)
-        slot = np.full(len(u_far), -1)
-        slot[fu[rws]] = np.arange(len(rws))
-        rr = fr[slot[unit_of[fr]] >= 0]
-        if len(rr) == 0:
-            return
-        f = far[slot[unit_of[rr]]].reshape(-1, 4, 4, 4, 4)
-        for k in range(4):
-            usable[rr, k], thr_hit[rr, k] = drop_outlier(
-                f[:, k, :, k], usable[rr, k], UNIT_CORNERS,
-                np.stack([loc.lx[rr, k], loc.ly[rr, k]], 1))
+        full = np.zeros((len(fu) + 1, 32, 32), bool)          # the last row: no far pair
+        full[rws] = far
+        far_of = np.full(len(u_far), len(fu))
+        far_of[fu] = np.arange(len(fu))
+        return full, far_of
 
-    def _viewpoint_thresholds(self, fr, sid, usable, w, is_extra, dq_ok, checked, loc, thr_hit,
-                              thr_q, ang, dist):
-        """Paper 5.3 at the viewpoint level for rays ``fr`` (their (n, 24) interpolant sample
-        ids ``sid``): DQs are far apart when any of their interpolants are (an extra-sample
-        triangle's samples for extras); a DQ with a far pair inside is unusable, then an
-        outlying DQ is dropped."""
+    @staticmethod
+    def _direction_thresholds(fr, far, loc, usable, thr_hit):
+        """Paper 5.3 at the direction level for rays ``fr`` (their units' item far pairs
+        ``far`` (R, 32, 32)): far corners of a DQ are not usable (an outlier is dropped, which
+        one depends on where the ray falls in the cell)."""
+        f = far[:, :16, :16].reshape(-1, 4, 4, 4, 4)
+        for k in range(4):
+            usable[fr, k], thr_hit[fr, k] = drop_outlier(
+                f[:, k, :, k], usable[fr, k], UNIT_CORNERS,
+                np.stack([loc.lx[fr, k], loc.ly[fr, k]], 1))
+
+    @staticmethod
+    def _viewpoint_thresholds(fr, far, item, usable, w, is_extra, dq_ok, checked, loc, thr_hit,
+                              thr_q):
+        """Paper 5.3 at the viewpoint level for rays ``fr`` (their units' item far pairs
+        ``far`` (R, 32, 32), their items ``item[fr]``): DQs are far apart when any of their
+        interpolants are (an extra-sample triangle's samples for extras); a DQ with a far pair
+        inside is unusable, then an outlying DQ is dropped."""
         n = len(fr)
         member = np.concatenate([usable[fr], np.zeros((n, 4, 2), bool)], axis=2)
         member = np.where(is_extra[fr, :, None], w[fr] != 0, member)
-        member &= dq_ok[fr, :, None] & checked[fr, :, None]
-        v = self.table.vals[sid].astype(np.float64)
-        rws, far = far_pairs(v[..., 3:6], v[..., 0:3], member.reshape(n, 24), ang, dist)
-        blocks = far.reshape(-1, 4, 6, 4, 6).any(axis=4).any(axis=2)          # (R, 4, 4)
+        member = (member & dq_ok[fr, :, None] & checked[fr, :, None]).reshape(n, 24)
+        it = item[fr].reshape(n, 24)
+        pair = far[np.arange(n)[:, None, None], it[:, :, None], it[:, None, :]]
+        pair &= member[:, :, None] & member[:, None, :]
+        blocks = pair.reshape(n, 4, 6, 4, 6).any(axis=4).any(axis=2)          # (n, 4, 4)
+        r = np.flatnonzero(blocks.any(axis=(1, 2)))
+        blocks = blocks[r]
         inner = np.diagonal(blocks, axis1=1, axis2=2)                           # (R, 4)
-        r = fr[rws]
+        r = fr[r]
         thr_hit[r] |= inner
         dq_ok[r] &= ~inner
         dq_ok[r], thr_q[r] = drop_outlier(blocks, dq_ok[r], UNIT_CORNERS,
