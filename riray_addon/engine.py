@@ -26,14 +26,17 @@ import numpy as np
 
 from ..core.render.camera import camera_rays
 from ..core.parallel import map_chunks
-from ..core.render.exact import SceneTracer, render_pixels
+from ..core.render.exact import SceneTracer, render_pixels, share_size
 from . import backend, cache
 from .export import export_camera, export_scene
 from .properties import query_options
 from .report import ExportError, Report
 
 ENGINE_ID = "RIRAY"
-CHUNK = 4096                 # pixels per render_pixels call (progress / cancel granularity)
+# Shares of the frame per worker process: each share is one render_pixels call (one RI-Tree
+# query and tracer batch); four per worker give progress and Esc steps of about a quarter of a
+# worker's work without making the batches small.
+SHARES_PER_WORKER = 4
 # The last frame rendered by this process (numpy arrays, top row first): tests and scripts.
 LAST_RENDER: dict = {}
 
@@ -172,7 +175,8 @@ class RirayRenderEngine(bpy.types.RenderEngine):
         t_render = time.perf_counter()
         procs = render_processes(scene.riray.render_processes)
         try:
-            parts = map_chunks(work, n, CHUNK, procs, progress)
+            parts = map_chunks(work, n, share_size(n, procs, SHARES_PER_WORKER), procs,
+                               progress)
         except _Cancelled:
             self.report({"WARNING"}, "render cancelled")
             return

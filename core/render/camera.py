@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..scene.io import MAX_IMAGE_SIDE
 from ..scene.model import Camera
 
 
@@ -69,7 +70,11 @@ def pixel_rays(cam: Camera, width: int, height: int, px: np.ndarray, py: np.ndar
 
 
 def camera_rays(cam: Camera, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """One ray through every pixel centre, row-major with the top row first: (H*W, 3) each."""
+    """One ray through every pixel centre, row-major with the top row first: (H*W, 3) each.
+    Sizes are 1..MAX_IMAGE_SIDE pixels, however they arrive (scene file, flag or API)."""
+    for name, v in (("width", width), ("height", height)):
+        if not 1 <= int(v) <= MAX_IMAGE_SIDE:
+            raise ValueError(f"image {name} must be 1..{MAX_IMAGE_SIDE} pixels (got {v})")
     py, px = np.mgrid[0:height, 0:width].astype(np.float64) + 0.5
     return pixel_rays(cam, width, height, px, py)
 

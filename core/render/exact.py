@@ -135,11 +135,20 @@ class RenderResult:
     masks: dict = field(default_factory=dict)   # name -> (H, W) bool or float images
 
 
-def share_size(n: int, workers: int) -> int:
-    """Rays per share of an n-ray frame: one share per worker, split further to stay within
+def share_size(n: int, workers: int, per_worker: int = 1) -> int:
+    """Rays per share of an n-ray frame: ``per_worker`` shares per worker (more give finer
+    progress and cancel steps, fewer give larger tracer batches), split further to stay within
     SHARE_RAYS."""
-    shares = max(int(workers), -(-n // SHARE_RAYS), 1)
+    shares = max(int(workers) * int(per_worker), -(-n // SHARE_RAYS), 1)
     return max(1, -(-n // shares))
+
+
+def peak_rss_mib() -> float:
+    """Peak resident memory (MiB) of this process or of any finished child (a worker pool)."""
+    import resource
+    kib = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
+              resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+    return kib / 1024.0
 
 
 def render_pixels(st: SceneTracer, origins, dirs, object_fn):
@@ -185,12 +194,12 @@ def render_exact(scene: Scene, camera=None, width=None, height=None, workers=Non
     w = int(scene.render.width if width is None else width)
     h = int(scene.render.height if height is None else height)
     cam = scene.camera(camera)
+    o, d = camera_rays(cam, w, h)
     wall0 = time.perf_counter()
     st = st or SceneTracer(scene)
     build_s = time.perf_counter() - wall0
     if point_inside(st, np.asarray(cam.matrix_world, dtype=np.float64)[:3, 3]):
         raise ValueError(f"camera {cam.name!r} is inside the object {scene.object.name!r}")
-    o, d = camera_rays(cam, w, h)
 
     def exact_fn(oo, dd, tmax):
         before = dict(st.tracer.stats)
@@ -216,6 +225,7 @@ def render_exact(scene: Scene, camera=None, width=None, height=None, workers=Non
         "object_only_cpu_s": round(stats["object_cpu_s"], 4),
         "total_cpu_s": round(stats["total_cpu_s"], 4),
         "wall_s": round(wall, 4), "build_s": round(build_s, 4),
+        "peak_rss_mib": round(peak_rss_mib(), 1), "shares": len(parts),
         "object_rays_per_cpu_s": round(stats["object_candidates"] / max(stats["object_cpu_s"], 1e-9), 1),
     }
     return RenderResult(image=col, stats={"summary": summary, "counts": stats},

@@ -25,7 +25,7 @@ from ..ritree.interp import angle_between
 from ..ritree.query import (ANSWER_NAMES, EXTRAPOLATED_S, FULL, NULL_S, OUTSIDE, TRACED,
                            TRACING_STAGES, WHY_NAMES, TreeQuery)
 from .camera import camera_rays
-from .exact import RenderResult, SceneTracer, render_pixels, share_size
+from .exact import RenderResult, SceneTracer, peak_rss_mib, render_pixels, share_size
 
 ERROR_GREY_MAX_DEG = 2.0     # Figure 14: greyscale up to 2 degrees, green beyond
 
@@ -38,9 +38,9 @@ def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
     w = int(scene.render.width if width is None else width)
     h = int(scene.render.height if height is None else height)
     cam = scene.camera(camera)
+    o, d = camera_rays(cam, w, h)
     st = st or SceneTracer(scene)
     query = TreeQuery(tree, st, options)
-    o, d = camera_rays(cam, w, h)
 
     def work(a, b):
         oo, dd = o[a:b], d[a:b]
@@ -114,7 +114,8 @@ def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
                "interp_object_only_wall_s": round(si["object_wall_s"], 4),
                "interp_total_wall_s": round(si["total_wall_s"], 4),
                "query_own_cpu_s": round(query_own_cpu(si), 4),
-               "shares": len(parts), "wall_s": round(wall, 4)}
+               "shares": len(parts), "wall_s": round(wall, 4),
+               "peak_rss_mib": round(peak_rss_mib(), 1)}
     masks = {"traced": traced.reshape(h, w), "object": objmask.reshape(h, w),
              "angle_error_deg": err.reshape(h, w)}
     if reference:

@@ -108,7 +108,7 @@ def test_worker_processes_render_the_same_pixels(bl, tmp_path, monkeypatch):
     bpy = bl.bpy
     build_scene(bl, tmp_path)
     scene = bpy.context.scene
-    monkeypatch.setattr(bl.engine, "CHUNK", 300)           # several chunks in a small frame
+    monkeypatch.setattr(bl.engine, "share_size", lambda n, procs, per_worker: 300)  # many shares
     calls = []
     real_map = bl.engine.map_chunks
 

@@ -135,6 +135,17 @@ def test_missing_and_directory_scene(tmp_path, capsys):
     _cli_rejects(capsys, ["render", str(tmp_path), "--out", str(tmp_path / "x")], "render")
 
 
+@pytest.mark.parametrize("w, h", [(100000, 100000), (16385, 8), (8, 0)])
+def test_engine_refuses_image_sizes_the_flags_refuse(w, h):
+    """Size limits hold for every way a size arrives: the engine API too, before allocating."""
+    from riray.render.interpolated import render_tree
+    scene = build("glass_sphere")
+    with pytest.raises(ValueError, match="must be 1..16384 pixels"):
+        render_exact(scene, width=w, height=h, workers=1)
+    with pytest.raises(ValueError, match="must be 1..16384 pixels"):
+        render_tree(scene, tree=None, width=w, height=h, workers=1)
+
+
 # --------------------------------------------------------------------------- camera inside
 def _with_camera(scene, name, location, look_at):
     scene.cameras.append(Camera(name=name, matrix_world=look_at_matrix(location, look_at)))

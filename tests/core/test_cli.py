@@ -20,7 +20,8 @@ from riray.scene.io import load_scene, save_scene
 from riray.scene.samples import GLASS_SPHERE_RADIUS, build
 
 SUMMARY_KEYS = {"scene", "camera", "width", "height", "mode", "rays_traced", "object_pixels",
-                "object_only_cpu_s", "total_cpu_s", "wall_s", "build_s", "object_rays_per_cpu_s"}
+                "object_only_cpu_s", "total_cpu_s", "wall_s", "build_s", "object_rays_per_cpu_s",
+                "peak_rss_mib", "shares"}
 COUNT_KEYS = {"camera_rays", "object_candidates", "object_hits", "events", "object_cpu_s",
               "object_wall_s", "total_cpu_s", "total_wall_s", "output_rays", "null_rays", "pairs",
               "newton_iters", "fallback_pairs"}
