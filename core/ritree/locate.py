@@ -12,7 +12,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from ..trace.boxes import slab_intervals
-from .dircube import SLOT, UV_AXES, dir_to_cube
+from .dircube import DOMAIN, SLOT, UV_AXES, dir_to_cube
 
 _U_AXIS = np.array([p[0] for p in UV_AXES])
 _V_AXIS = np.array([p[1] for p in UV_AXES])
@@ -73,7 +73,13 @@ def locate(tree, o, d, tmax):
     slot = SLOT[face[q], cf]
     ok = (vnode >= 0) & np.all(vps >= 0, axis=1) & (slot >= 0)
     trees = np.where(ok[:, None], vps * 5 + slot[:, None], 0)                     # (m, 4)
-    leaf, lx, ly = tree.dir_locator.locate(trees.ravel(), np.repeat(u, 4), np.repeat(v, 4))
+    # the four direction trees of a viewpoint cell cover the same slot domain, DOMAIN[face,
+    # slot] (their viewpoints lie on one box face): normalize once per ray
+    dom = DOMAIN[face[q], np.maximum(slot, 0)]
+    fx = np.clip((u - dom[:, 0]) / (dom[:, 1] - dom[:, 0]), 0.0, 1.0)
+    fy = np.clip((v - dom[:, 2]) / (dom[:, 3] - dom[:, 2]), 0.0, 1.0)
+    leaf, lx, ly = tree.dir_locator.locate_normalized(trees.ravel(), np.repeat(fx, 4),
+                                                      np.repeat(fy, 4))
     leaf, lx, ly = leaf.reshape(-1, 4), lx.reshape(-1, 4), ly.reshape(-1, 4)
     ok &= np.all(leaf >= 0, axis=1)
     # leaves inside the baked rectangle with every corner sampled answer all their rays;

@@ -179,8 +179,11 @@ class DenseLocator:
 
     def locate(self, trees, x, y):
         """As Forest.locate."""
+        return self.locate_normalized(trees, *self.forest.normalized(trees, x, y))
+
+    def locate_normalized(self, trees, fx, fy):
+        """Forest.locate for points given in normalized domain coordinates (Forest.normalized)."""
         side = 1 << self.level
-        fx, fy = self.forest.normalized(trees, x, y)
         off = self.offset[trees]
         cx = np.minimum((fx * side).astype(np.int64), side - 1)
         cy = np.minimum((fy * side).astype(np.int64), side - 1)

@@ -328,8 +328,7 @@ class TreeQuery:
             few &= thr
         with clock("blend"):
             cand = np.flatnonzero(~few & thr)
-            out, best = self._blend(items, set_of[cand], W[cand], w[cand], item[cand],
-                                    is_extra[cand].any(axis=1))
+            out, best = self._blend(items, set_of, cand, W, w, item, is_extra)
             od, nm = out[:, 3:6], out[:, 9:12]
             lod, lnm = np.linalg.norm(od, axis=1), np.linalg.norm(nm, axis=1)
             blend_ok = np.ones(m, bool)
@@ -355,25 +354,26 @@ class TreeQuery:
                     self._null(loc.take(r), flat[r], pc[r], o, d, tmax, res, ans, why)
         return len(two)
 
-    def _blend(self, items, set_of, W, w, item, has_extra):
-        """Blend rays of sets ``set_of`` with viewpoint weights W (n, 4) and per-DQ slot
-        weights w (n, 4, 6) over items ``item`` (n, 4, 6); rays without extras blend their 16
-        corners only. Returns (values (n, 12), the heaviest item of each ray (n,))."""
-        n = len(set_of)
-        out = np.empty((n, 12))
-        best = np.empty(n, np.int64)
-        wq = W[:, :, None]
-        r = np.flatnonzero(~has_extra)
-        wr = (wq[r] * w[r, :, :4]).reshape(len(r), 16)
-        out[r] = blend(items.corner_vals, set_of[r], wr)
-        best[r] = np.argmax(np.abs(wr), axis=1)
-        r = np.flatnonzero(has_extra)
-        if len(r):
+    def _blend(self, items, set_of, cand, W, w, item, is_extra):
+        """Blend rays ``cand`` (of sets ``set_of``) with viewpoint weights W (m, 4) and per-DQ
+        slot weights w (m, 4, 6) over items ``item`` (m, 4, 6); rays without extras blend their
+        16 corners only. Returns (values (c, 12), the heaviest item of each ray (c,))."""
+        out = np.empty((len(cand), 12))
+        best = np.empty(len(cand), np.int64)
+        ex = is_extra[cand].any(axis=1)
+        k = np.flatnonzero(~ex)
+        r = cand[k]
+        wr = (W[r, :, None] * w[r, :, :4]).reshape(len(r), 16)
+        out[k] = blend(items.corner_vals, set_of[r], wr)
+        best[k] = np.argmax(np.abs(wr), axis=1)
+        k = np.flatnonzero(ex)
+        if len(k):
+            r = cand[k]
             wr = np.zeros((len(r), 32))
             np.put_along_axis(wr, item[r].reshape(len(r), 24),
-                              (wq[r] * w[r]).reshape(len(r), 24), axis=1)
-            out[r] = blend(items.vals, set_of[r], wr)
-            best[r] = np.argmax(np.abs(wr), axis=1)
+                              (W[r, :, None] * w[r]).reshape(len(r), 24), axis=1)
+            out[k] = blend(items.vals, set_of[r], wr)
+            best[k] = np.argmax(np.abs(wr), axis=1)
         return out, best
 
     def _first_hit_class(self, o, d, tmax, rows, set_of, two_sets, s_ids) -> np.ndarray:
