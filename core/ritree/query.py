@@ -347,11 +347,11 @@ class TreeQuery:
                        out[gc, 6:9], nm[gc] / lnm[gc, None], pc[g],
                        tab.patch[items.ids[set_of[g], best[gc]]].astype(np.int64))
             if opt.null_interp:
-                flat = s_ids[set_of]
-                nul = tab.null[flat]
-                r = np.flatnonzero(few & np.any(nul & (tab.cls[flat] == pc[:, None]), axis=1))
+                # units holding a null sample of their class: their failed rays may be null
+                u_null = np.any(tab.null[s_ids[u_set]] & (s_cls[u_set] == u_pc[:, None]), axis=1)
+                r = np.flatnonzero(few & u_null[unit_of])
                 if len(r):
-                    self._null(loc.take(r), flat[r], pc[r], o, d, tmax, res, ans, why)
+                    self._null(loc.take(r), s_ids[set_of[r]], pc[r], o, d, tmax, res, ans, why)
         return len(two)
 
     def _blend(self, items, set_of, cand, W, w, item, is_extra):
