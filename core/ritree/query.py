@@ -275,14 +275,15 @@ class TreeQuery:
                 used = u_ok & np.tile(np.repeat(u_checked, 4, axis=1), 2)
                 v = tab.vals[items.ids[u_set]].astype(np.float64)
                 u_far = may_have_far_pairs(v[..., 3:6], v[..., 0:3], used, ang, dist)
+                far, far_of = self._unit_far_pairs(u_far, items.ids[u_set], u_ok, u_checked,
+                                                   ang, dist)
+                u_far = far.any(axis=(1, 2))[far_of]          # units with a real far pair
         with clock("weights"):
             usable = u_ok[unit_of, :16].reshape(m, 4, 4)
             checked = u_checked[unit_of]
             thr_hit = np.zeros((m, 4), bool)            # DQs whose corners the thresholds cut
             fr = np.flatnonzero(u_far[unit_of])         # rays that need the pairwise tests
             if len(fr):
-                far, far_of = self._unit_far_pairs(u_far, items.ids[u_set], u_ok, u_checked,
-                                                   ang, dist)
                 fr_far = far[far_of[unit_of[fr]]]                               # (R, 32, 32)
                 self._direction_thresholds(fr, fr_far, loc, usable, thr_hit)
             w = np.zeros((m, 4, 6))                     # per DQ: 4 corners + up to 2 extras
