@@ -15,6 +15,7 @@ import bpy
 
 from . import backend
 from .export import object_fingerprint
+from .report import ExportError
 
 CACHE_EXT = ".rit"
 _update_counter = [0]
@@ -36,6 +37,20 @@ def cache_path(obj) -> str:
     """Absolute path of the object's cache file."""
     rel = obj.riray.cache_file or default_relpath(obj)
     return os.path.abspath(bpy.path.abspath(rel))
+
+
+def check_writable(path: str) -> None:
+    """ExportError unless a cache file can be written at ``path``: its folder exists or can be
+    created, and is writable."""
+    if os.path.isdir(path):
+        raise ExportError(f"cache file {path} is a folder")
+    base = os.path.dirname(path)
+    while not os.path.exists(base):
+        base = os.path.dirname(base)
+    if not os.path.isdir(base):
+        raise ExportError(f"cannot write the cache file {path}: {base} is a file, not a folder")
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise ExportError(f"cannot write the cache file {path}: {base} is not writable")
 
 
 def header(path: str) -> dict | None:

@@ -79,13 +79,27 @@ def camera_views(context, params: dict, report: Report) -> list:
     return out
 
 
+def checked_params(obj) -> dict:
+    """The object's bake parameters, refused at once (ExportError naming the allowed values)
+    when core's bake would reject them. Viewpoint refinement only applies to camera bakes, so
+    it is off (and not checked) otherwise."""
+    params = bake_params(obj)
+    if not params["bake_for_cameras"]:
+        params["viewpoint_refine"] = 0
+    try:
+        backend.bake_params(params)
+    except ValueError as exc:
+        raise ExportError(f"{obj.name}: {exc}") from None
+    return params
+
+
 def prepare_bake(context, obj, report: Report):
     """(core scene with the object + cameras, params, meta) for a bake of ``obj``. With "bake
     for scene cameras" the scene's cameras are every camera at every frame of the range, and
     params carries the render size they are seen at."""
+    params = checked_params(obj)
     depsgraph = context.evaluated_depsgraph_get()
     scene = export_scene(depsgraph, obj, report, cameras="ALL", environment=False)
-    params = bake_params(obj)
     params["width"], params["height"] = scene.render.width, scene.render.height
     if params["bake_for_cameras"]:
         views = camera_views(context, params, report)
@@ -94,6 +108,7 @@ def prepare_bake(context, obj, report: Report):
         else:
             report.warning("bake for scene cameras: the scene has no camera; baking everywhere")
             params["bake_for_cameras"] = False
+            params["viewpoint_refine"] = 0
     params["camera_positions"] = [[float(x) for x in np.asarray(c.matrix_world)[:3, 3]]
                                   for c in scene.cameras]
     meta = {"object": obj.name, "fingerprint": object_fingerprint(obj, depsgraph),
@@ -106,10 +121,15 @@ def start_bake(context, obj, report: Report | None = None) -> BakeJob:
     report = report if report is not None else Report()
     if running_job(obj.name):
         raise ExportError(f"{obj.name}: a bake is already running")
+    path = cache.cache_path(obj)
+    cache.check_writable(path)
     scene, params, meta = prepare_bake(context, obj, report)
     if context.scene.riray.target is None:
         context.scene.riray.target = obj
-    job = BakeJob(obj.name, cache.cache_path(obj)).start(scene, params, meta)
+    try:
+        job = BakeJob(obj.name, path).start(scene, params, meta)
+    except OSError as exc:
+        raise ExportError(f"{obj.name}: cannot start the bake: {exc}") from None
     JOBS[obj.name] = job
     return job
 

@@ -110,3 +110,32 @@ def test_estimate_and_failed_bake(bl, tmp_path):
         del os.environ["RIRAY_PYTHON"]
     assert bl.operators.JOBS[obj.name].state == "failed"
     assert not os.path.exists(bl.cache.cache_path(obj))
+
+
+def test_bad_settings_refused_before_the_bake(bl, tmp_path):
+    """A cache path under a regular file, or parameters core's bake rejects, are refused at
+    once with a message naming the problem: no worker is started."""
+    bpy = bl.bpy
+    obj, _ = _setup(bl, tmp_path)
+    last_job = bl.operators.JOBS.get(obj.name)
+    (tmp_path / "afile").write_text("not a folder")
+    obj.riray.cache_file = str(tmp_path / "afile" / "sub" / "x.rit")
+    with pytest.raises(RuntimeError, match="afile is a file, not a folder"):
+        bpy.ops.riray.bake(object=obj.name, viewpoint_depth=1, direction_depth=1)
+    assert bl.operators.JOBS.get(obj.name) is last_job
+    obj.riray.cache_file = ""
+    p = obj.riray
+    p.bake_for_cameras, p.viewpoint_depth, p.viewpoint_refine = True, 9, 2   # both in range
+    t0 = time.time()
+    with pytest.raises(RuntimeError, match="viewpoint_depth \\+ viewpoint_refine <= 10"):
+        bpy.ops.riray.bake(object=obj.name)
+    with pytest.raises(RuntimeError, match="viewpoint_depth \\+ viewpoint_refine <= 10"):
+        bpy.ops.riray.bake_estimate(object=obj.name)
+    p.viewpoint_depth, p.min_direction_depth, p.direction_depth = 2, 5, 3
+    with pytest.raises(RuntimeError, match="min_direction_depth"):
+        bpy.ops.riray.bake(object=obj.name)
+    assert time.time() - t0 < 10 and bl.operators.JOBS.get(obj.name) is last_job
+    # refinement only applies to camera bakes: off, it is not held against the depth
+    p.viewpoint_depth, p.min_direction_depth, p.bake_for_cameras = 9, 1, False
+    params = bl.operators.checked_params(obj)
+    assert params["viewpoint_refine"] == 0 and params["viewpoint_depth"] == 9

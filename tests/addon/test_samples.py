@@ -170,3 +170,25 @@ def test_headless_workflow(extension_zip, bowl_blend, tmp_path):
     assert (tmp_path / "bowl.bowl.rit").is_file()                   # cache beside the .blend
     for f in (1, 2):
         assert (tmp_path / "out" / f"bowl_{f:04d}.png").is_file()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--frames", "5-2"], "--frames 5-2: the range ends (2) before it starts (5)"),
+    (["--frames", "abc"], "--frames 'abc': expected a frame N or a range A-B"),
+    (["--viewpoint-depth", "30"], "--viewpoint-depth 30: must be in 1..9"),
+    (["--percentage", "-5"], "--percentage -5: must be in 1..32767"),
+    (["--camera", "nope"], "--camera: no camera named 'nope'"),
+    ("missing", "missing.blend: no such file"),
+])
+def test_headless_bad_input(extension_zip, bowl_blend, tmp_path, args, message):
+    """Bad input to headless_render.py: one line naming it, exit status 2, before any bake."""
+    blend = str(tmp_path / "missing.blend") if args == "missing" else str(bowl_blend)
+    res = subprocess.run(
+        [sys.executable, str(ROOT / "sample_scenes" / "headless_render.py"), blend,
+         *([] if args == "missing" else args), "--zip", str(extension_zip.path)],
+        capture_output=True, text=True, timeout=120,
+        env={**os.environ, "BLENDER_USER_RESOURCES": str(tmp_path / "bl_user")})
+    assert res.returncode == 2, res.stdout + res.stderr
+    assert "Traceback" not in res.stderr and "baking" not in res.stdout
+    last = res.stderr.strip().splitlines()[-1]
+    assert last.startswith("headless_render.py: error: ") and message in last, res.stderr
