@@ -87,6 +87,10 @@ def _bake_opts(p):
                    help="bake angular tolerance (degrees)")
     p.add_argument("--tolerance-dist", type=float, default=d.tolerance_dist, metavar="REL",
                    help="bake distance tolerance, relative to the object's box diagonal")
+    p.add_argument("--viewpoint-tolerance", type=float, default=d.viewpoint_tolerance_deg,
+                   metavar="DEG", help="split viewpoint cells whose camera test rays, answered "
+                   "through the tree, miss the exact ones by more than this (degrees; default "
+                   f"{d.viewpoint_tolerance_deg}; camera-region bakes only)")
     p.add_argument("--search-steps", type=int, default=d.search_steps,
                    help="binary-search steps for the extra samples")
     p.add_argument("--full", action="store_true",
@@ -101,7 +105,8 @@ def _bake_params(args):
         viewpoint_depth=args.viewpoint_depth, direction_depth=args.direction_depth,
         viewpoint_refine=args.viewpoint_refine,
         min_direction_depth=args.min_direction_depth, tolerance_deg=args.tolerance,
-        tolerance_dist=args.tolerance_dist, search_steps=args.search_steps).validate()
+        tolerance_dist=args.tolerance_dist, viewpoint_tolerance_deg=args.viewpoint_tolerance,
+        search_steps=args.search_steps).validate()
 
 
 def _check_writable(path, folder=False):

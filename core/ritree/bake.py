@@ -18,6 +18,7 @@ chunks and ``cancel()`` (returning True) stops the bake with ``BakeCancelled``.
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -28,7 +29,8 @@ from .dircube import CUBE, DOMAIN, N_SLOTS, UV_AXES, cube_to_dir
 from .interp import FAIL, UNIT_CORNERS, angle_between, cell_weights
 from .quadtree import CORNERS, Forest
 from .region import Region
-from .tree import BakeParams, RITree, Samples
+from .tree import BOUNDARY, PATH_CHANGE, UNVERIFIED, BakeParams, RITree, Samples
+from .verify import viewpoint_errors
 
 TRACE_CHUNK = 8192          # rays per worker task (bounds worker memory, keeps progress fluid)
 SLOT_MIN_DEPTH = 1e-9      # object-box parts nearer than this (x its extent) along a slot's
@@ -110,27 +112,39 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
     """Bake the RI-Tree of ``st`` (render.exact.SceneTracer) with ``params`` over ``region``.
 
     With a camera region and ``params.viewpoint_refine`` > 0, the viewpoint cells where the
-    cameras' own rays would still be traced (too few usable interpolants, thresholds) are split
-    further, up to that many extra levels (non-uniform viewpoint subdivision)."""
+    cameras' own rays would still be traced (too few usable interpolants, thresholds) or where
+    the measured viewpoint-level error exceeds ``viewpoint_tolerance_deg`` (verify.py) are
+    split further, up to that many extra levels (non-uniform viewpoint subdivision). The final
+    tree's viewpoint-level errors are measured and stored (``vp_err``, ``vp_flags``)."""
     params = (params or BakeParams()).validate()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), _cpu_seconds()
     refine = params.viewpoint_refine if region is not None and region.rays is not None else 0
     stages = (params.direction_depth + 2) * (1 + refine)
     baker = _Baker(st, params, _progress_reporter(progress, stages), cancel, workers)
     baker.start(region)
-    passes = 0
+    passes, measured = 0, False
     for _ in range(refine):
         if not baker.refine(region):
+            measured = True                    # nothing split since the last measurement
             break
         passes += 1
+    if not measured:
+        baker.measure(region)
     tree = baker.tree()
     # what the caller renders with is exactly what a cache file stores
     tree.samples = tree.samples.packed(tree.box_lo, tree.box_hi)
     tree.meta.update({"fingerprint": fingerprint(st.scene.object, st.scene.render.max_events),
                       "region": (region or Region()).describe(), "refine_passes": passes,
-                      "bake_seconds": round(time.perf_counter() - t0, 3)})
+                      "bake_seconds": round(time.perf_counter() - t0, 3),
+                      "bake_cpu_s": round(_cpu_seconds() - c0, 3)})
     baker.report(stages, 1.0, "done")
     return tree
+
+
+def _cpu_seconds() -> float:
+    """CPU seconds (user + system) of this process and of its finished worker processes."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
 
 
 class _Baker:
@@ -160,6 +174,9 @@ class _Baker:
         self.samples = Samples.empty()
         self.index = _SampleIndex()
         self.tracer = _Tracer(st, self, workers, lambda f: None, cancel)
+        self.dir_err = np.zeros(0, np.float32)
+        self.dir_flags = np.zeros(0, np.uint8)
+        self.vp_err = self.vp_flags = None
         self.ex = {"ex_node": np.zeros(0, np.int64), "ex_kind": np.zeros(0, np.int8),
                    "ex_ids": np.zeros((0, 4), np.int64), "ex_pos": np.zeros((0, 4, 2), np.float32),
                    "ex_corner": np.zeros((0, 4), np.int64)}
@@ -264,24 +281,29 @@ class _Baker:
                                           np.tile(CORNERS * (Gd - 1), (len(trees), 1)),
                                           0).reshape(-1, 4)
         tol_ang, tol_d = np.radians(p.tolerance_deg), p.tolerance_dist * self.diag
-        for level in range(M):
-            self.report(level, 0.0, f"direction level {level}")
+        # levels 0..M-1 split where the test fails; leaves at the maximum depth M are tested too
+        # (their error recorded, UNVERIFIED where they would split), not split
+        for level in range(M + 1):
+            self.report(min(level, M - 1), 0.0, f"direction level {level}")
             if len(nodes) == 0:
                 break
             tr = dirf.tree_of_nodes()[nodes]
             inside = self._overlaps_rect(nodes, tr)           # only the baked rectangle refines
             nodes, tr = nodes[inside], tr[inside]
             cc = dirf.corner_coords(nodes, M)
-            mid = (cc[:, 0] + cc[:, 3]) // 2
+            mid = (cc[:, 0] + cc[:, 3]) // 2 if level < M else (cc[:, 0] + cc[:, 3]) / 2
             if level < p.min_direction_depth:
                 split = np.ones(len(nodes), bool)
             else:
                 u, v = self.uv_of(tr, mid)
-                ms = self._trace(tr, u, v, level, f"direction level {level}")
+                ms = self._trace(tr, u, v, min(level, M - 1), f"direction level {level}")
                 scale = dirf.cube_scale(nodes, tr, np.broadcast_to(UNIT_CORNERS[:, 0], (len(tr), 4)),
                                         np.broadcast_to(UNIT_CORNERS[:, 1], (len(tr), 4)))
-                split = _needs_split(self.samples, dirf.corner[nodes], scale, ms, self.class_of,
-                                     tol_ang, tol_d)
+                split, err, flags = _midpoint_test(self.samples, dirf.corner[nodes], scale, ms,
+                                                   self.class_of, tol_ang, tol_d)
+                self._record(nodes, err, flags | np.where(split & (level == M), UNVERIFIED, 0))
+                if level == M:
+                    break
                 # the traced midpoint becomes a corner of the children: keep it
                 keep = np.flatnonzero(split)
                 if len(keep):
@@ -309,6 +331,18 @@ class _Baker:
         self.ex = {k: v[order] for k, v in self.ex.items()}
         self.stage0 += M + 2
 
+    def _record(self, nodes, err, flags):
+        """Store the measured error and flags of direction ``nodes`` (arrays grown to the
+        forest's size)."""
+        k = len(self.dirf.child)
+        if len(self.dir_err) < k:
+            self.dir_err = np.concatenate([self.dir_err,
+                                           np.full(k - len(self.dir_err), np.nan, np.float32)])
+            self.dir_flags = np.concatenate([self.dir_flags,
+                                             np.zeros(k - len(self.dir_flags), np.uint8)])
+        self.dir_err[nodes] = err
+        self.dir_flags[nodes] = flags
+
     def _trace_vpc(self, tr, u, v):
         return self._trace(tr, u, v, self.M, "extra samples")
 
@@ -326,18 +360,18 @@ class _Baker:
 
     def refine(self, region) -> bool:
         """One refinement pass: split the viewpoint cells where the region's rays are traced
-        for lack of interpolants or by the thresholds; False when nothing is left to split."""
+        for lack of interpolants or by the thresholds, or where the measured viewpoint-level
+        error exceeds ``viewpoint_tolerance_deg``; False when nothing is left to split."""
         from .locate import entry_points
         from .query import WHY_THRESHOLD, WHY_USABLE, TreeQuery
         tree = self.tree()
         o, d, tmax = region.rays
         _, ans, why, _ = TreeQuery(tree, self.st)(o, d, tmax)
         bad = (why == WHY_USABLE) | (why == WHY_THRESHOLD)
-        if not np.any(bad):
-            return False
         t_in, face, x, y, _ = entry_points(tree, o[bad], d[bad])
         leaf, _, _ = self.vpf.locate(face, x, y)
-        leaf = np.unique(leaf[leaf >= 0])
+        err = self.measure(region, tree)
+        leaf = np.union1d(leaf[leaf >= 0], np.flatnonzero(err > self.params.viewpoint_tolerance_deg))
         leaf = leaf[self.vpf.level[leaf] < self.Dmax]
         if len(leaf) == 0:
             return False
@@ -347,6 +381,16 @@ class _Baker:
         if len(vps):
             self._bake_directions(self._add_trees(vps, self._slot_fn(region, level)))
         return True
+
+    def measure(self, region, tree=None) -> np.ndarray:
+        """Viewpoint-level errors of the current tree on the region's cameras (verify.py),
+        kept for the tree; cells above the tolerance are flagged UNVERIFIED (a later pass that
+        splits them measures their children). Returns the errors (NaN: not measured)."""
+        cams = region.cameras if region is not None else None
+        err, flags = viewpoint_errors(tree or self.tree(), self.st, cams or [])
+        flags[err > self.params.viewpoint_tolerance_deg] |= UNVERIFIED
+        self.vp_err, self.vp_flags = err, flags
+        return err
 
     def _slot_fn(self, region, level):
         """(needed slots, rects) of new viewpoints: the region's, or every slot that can see
@@ -365,11 +409,19 @@ class _Baker:
         return fn
 
     def tree(self) -> RITree:
+        self._record(np.zeros(0, np.int64), np.float32(0), np.uint8(0))      # grow to the forest
+        kv = len(self.vpf.child)
+        vp_err = np.full(kv, np.nan, np.float32)
+        vp_flags = np.zeros(kv, np.uint8)
+        if self.vp_err is not None:
+            vp_err[:len(self.vp_err)] = self.vp_err
+            vp_flags[:len(self.vp_flags)] = self.vp_flags
         return RITree(params=self.params, box_lo=self.box_lo, box_hi=self.box_hi,
                       diag=self.diag, class_of=self.class_of.astype(np.int64),
                       vp_forest=self.vpf, vp_pos=self.vp_pos, vp_face=self.vp_face,
                       dir_forest=self.dirf, dir_rect=self.rect, samples=self.samples,
-                      **self.ex,
+                      **self.ex, dir_err=self.dir_err.copy(), dir_flags=self.dir_flags.copy(),
+                      vp_err=vp_err, vp_flags=vp_flags,
                       meta={"rays_traced": int(self.tracer.rays),
                             "viewpoints": int(len(self.vp_pos)),
                             "direction_trees": int(np.sum(self.dirf.root >= 0)),
@@ -387,10 +439,16 @@ def _cls(samples: Samples, ids, class_of):
     return np.where(p >= 0, class_of[np.maximum(p, 0)], -1)
 
 
-def _needs_split(samples, corner, scale, ms: Samples, class_of, tol_ang, tol_d):
+def _midpoint_test(samples, corner, scale, ms: Samples, class_of, tol_ang, tol_d):
     """Split test of cells with corner sample ids ``corner`` (N, 4) and traced midpoints ``ms``;
     ``scale`` (N, 4) weighs the corners' output directions as the renderer does
-    (perspective-correct: the length of each corner's direction-cube point)."""
+    (perspective-correct: the length of each corner's direction-cube point).
+
+    Returns (split (N,), err (N,) float32, flags (N,) uint8): err is the output-direction error
+    in degrees of the midpoint interpolated as the renderer would (the corners of its class,
+    not null), 0 where the midpoint and all corners miss or are null of one class, NaN where
+    there is no interpolation to measure; flags mark object/miss boundaries and ray-tree
+    hash changes among the corners and the midpoint."""
     cc = _cls(samples, corner, class_of)
     cm = np.where(ms.patch >= 0, class_of[np.maximum(ms.patch, 0)], -1)
     cn = samples.null[corner]
@@ -399,9 +457,12 @@ def _needs_split(samples, corner, scale, ms: Samples, class_of, tol_ang, tol_d):
     half = np.full(len(corner), 0.5)
     w, st = cell_weights(usable, half, half)
     smooth = ~disagree & ~ms.null & (cm >= 0)
-    err = np.zeros(len(corner), bool)
-    if np.any(smooth):
-        i = np.flatnonzero(smooth)
+    fail = np.zeros(len(corner), bool)
+    err = np.full(len(corner), np.nan, np.float32)
+    err[~disagree & (ms.null | (cm < 0))] = 0.0
+    meas = ~ms.null & (cm >= 0) & (st != FAIL)
+    if np.any(meas):
+        i = np.flatnonzero(meas)
         wi = w[i][:, :, None]
         ci = corner[i]
         od = np.einsum("nkc,nk->nc", samples.out_d[ci].astype(np.float64), w[i] * scale[i])
@@ -410,12 +471,20 @@ def _needs_split(samples, corner, scale, ms: Samples, class_of, tol_ang, tol_d):
         nm /= np.maximum(np.linalg.norm(nm, axis=1), 1e-300)[:, None]
         oo = (samples.out_o[ci].astype(np.float64) * wi).sum(1)
         pt = (samples.point[ci].astype(np.float64) * wi).sum(1)
-        err[i] = ((angle_between(od, ms.out_d[i].astype(np.float64)) > tol_ang)
-                  | (angle_between(nm, ms.normal[i].astype(np.float64)) > tol_ang)
-                  | (np.linalg.norm(oo - ms.out_o[i], axis=1) > tol_d)
-                  | (np.linalg.norm(pt - ms.point[i], axis=1) > tol_d)
-                  | (st[i] == FAIL))
-    return disagree | err
+        e_od = angle_between(od, ms.out_d[i].astype(np.float64))
+        err[i] = np.degrees(e_od)
+        fail[i] = ((e_od > tol_ang)
+                   | (angle_between(nm, ms.normal[i].astype(np.float64)) > tol_ang)
+                   | (np.linalg.norm(oo - ms.out_o[i], axis=1) > tol_d)
+                   | (np.linalg.norm(pt - ms.point[i], axis=1) > tol_d))
+    fail |= smooth & (st == FAIL)
+    hit = np.concatenate([cc, cm[:, None]], axis=1) >= 0
+    flags = np.where(hit.any(1) & ~hit.all(1), BOUNDARY, 0).astype(np.uint8)
+    th = np.concatenate([samples.tree[corner], ms.tree[:, None]], axis=1).astype(np.int64)
+    th_hit = np.where(hit, th, -1)
+    lo = np.where(hit, th, np.iinfo(np.int64).max).min(axis=1)
+    flags |= np.where(th_hit.max(axis=1) > lo, PATH_CHANGE, 0).astype(np.uint8)
+    return disagree | (smooth & fail), err, flags
 
 
 def _slots_seeing(vp_pos, vface, lo, hi):

@@ -22,12 +22,15 @@ class Region:
     viewpoint level L, the direction trees needed, keyed ``viewpoint_key * 5 + slot``
     (viewpoint_key = f G^2 + gy G + gx on the finest grid, G = 2^(D + refine) + 1), and the
     (u0, u1, v0, v1) part of each that the cameras' rays use. ``rays`` = (origins, dirs, tmax)
-    of the camera rays that reach the object's box, for refinement. None: everything."""
+    of the camera rays that reach the object's box, for refinement. ``cameras``: the (Camera,
+    width, height) triples, whose rays verify the viewpoint-level interpolation. None:
+    everything."""
 
-    def __init__(self, cells=None, levels=None, rays=None):
+    def __init__(self, cells=None, levels=None, rays=None, cameras=None):
         self.cells = cells
         self.levels = levels
         self.rays = rays
+        self.cameras = cameras
 
     @property
     def tree_keys(self):
@@ -119,4 +122,5 @@ def region_for_cameras(st, params, cameras, width, height, margin: int = 1) -> R
         np.maximum.at(rects[:, 3], inv, vv)
         levels[level] = (uk, rects + np.array([-widen, widen, -widen, widen]))
     o, d, t = (np.concatenate([r[k] for r in rays]) for k in range(3))
-    return Region(cells=cells, levels=levels, rays=(o, d, t))
+    return Region(cells=cells, levels=levels, rays=(o, d, t),
+                  cameras=[(cam, width, height) for cam in cameras])

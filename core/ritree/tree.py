@@ -22,8 +22,14 @@ from .quadtree import DenseLocator, Forest
 
 SAMPLE_FIELDS = ("out_o", "out_d", "point", "normal", "patch", "null", "tree")
 # Version of the tree's array layout inside a .rit file (the file format has its own version):
-# a reader refuses other layouts with a message to re-bake.
-TREE_LAYOUT = 1
+# a reader refuses other layouts with a message to re-bake. 2: the bake's measured errors and
+# flags per direction node and viewpoint node (dir_err, dir_flags, vp_err, vp_flags).
+TREE_LAYOUT = 2
+# Bits of dir_flags / vp_flags: what the bake's tests saw in a leaf cell.
+UNVERIFIED = 1    # the cell failed its test (error above the tolerance, a class or null state its
+                  # corners do not share, no interpolation) and could not be split further
+BOUNDARY = 2      # an object/miss boundary crosses it: corners or test rays both hit and miss
+PATH_CHANGE = 4   # its corners or test rays do not all share one ray-tree hash (event sequence)
 
 
 @dataclass
@@ -32,10 +38,13 @@ class BakeParams:
 
     viewpoint_depth: int = 5          # uniform viewpoint-tree depth (paper: 5)
     viewpoint_refine: int = 2         # extra viewpoint levels where camera rays lack interpolants
+                                      # or the viewpoint-level error is too large
     direction_depth: int = 6          # maximum direction-tree depth (paper: 6)
     min_direction_depth: int = 1      # direction trees are split at least this deep
     tolerance_deg: float = 0.5        # split while the midpoint's interpolated output ray ...
     tolerance_dist: float = 0.002     # ... (or first hit / normal) misses the traced one by more
+    viewpoint_tolerance_deg: float = 1.0  # split viewpoint cells whose camera test rays answered
+                                      # through the tree miss the exact ones by more (verify.py)
     search_steps: int = 8             # binary-search steps for the extra samples (paper 4.3)
     pad: float = 1e-3                 # bounding-box padding, relative to the diagonal
 
@@ -50,6 +59,8 @@ class BakeParams:
             (np.isfinite(self.tolerance_deg) and self.tolerance_deg > 0, "tolerance_deg must be > 0"),
             (np.isfinite(self.tolerance_dist) and self.tolerance_dist > 0,
              "tolerance_dist must be > 0"),
+            (np.isfinite(self.viewpoint_tolerance_deg) and self.viewpoint_tolerance_deg > 0,
+             "viewpoint_tolerance_deg must be > 0"),
             (0 <= self.search_steps <= 30, "search_steps must be in 0..30"),
             (np.isfinite(self.pad) and 0 <= self.pad <= 0.5, "pad must be in [0, 0.5]"),
         ]
@@ -201,7 +212,22 @@ class RITree:
     ex_ids: np.ndarray                # (E, 4) sample ids v1..v4
     ex_pos: np.ndarray                # (E, 4, 2) their cell-local (lx, ly)
     ex_corner: np.ndarray             # (E, 4) corner slots: see bake._extras
+    # The bake's measurements (None: nothing measured, as for a hand-made tree: NaN errors and
+    # no flags).
+    dir_err: np.ndarray | None = None    # (K,) float32 largest output-direction error (degrees)
+                                         # the bake measured in each direction node; NaN: none
+    dir_flags: np.ndarray | None = None  # (K,) uint8 UNVERIFIED | BOUNDARY | PATH_CHANGE
+    vp_err: np.ndarray | None = None     # (Kv,) float32 the same per viewpoint node (camera test
+                                         # rays across the cell answered through the tree)
+    vp_flags: np.ndarray | None = None   # (Kv,) uint8
     meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        for name, forest in (("dir", self.dir_forest), ("vp", self.vp_forest)):
+            if getattr(self, f"{name}_err") is None:
+                setattr(self, f"{name}_err", np.full(len(forest.child), np.nan, np.float32))
+            if getattr(self, f"{name}_flags") is None:
+                setattr(self, f"{name}_flags", np.zeros(len(forest.child), np.uint8))
 
     @cached_property
     def table(self) -> SampleTable:
@@ -243,7 +269,8 @@ class RITree:
         out = {"box_lo": self.box_lo, "box_hi": self.box_hi, "class_of": self.class_of,
                "vp_pos": self.vp_pos, "vp_face": self.vp_face, "dir_rect": self.dir_rect,
                "ex_node": self.ex_node, "ex_kind": self.ex_kind, "ex_ids": self.ex_ids,
-               "ex_pos": self.ex_pos, "ex_corner": self.ex_corner}
+               "ex_pos": self.ex_pos, "ex_corner": self.ex_corner, "dir_err": self.dir_err,
+               "dir_flags": self.dir_flags, "vp_err": self.vp_err, "vp_flags": self.vp_flags}
         out.update(self.vp_forest.arrays("vp"))
         out.update(self.dir_forest.arrays("dir"))
         for k in ("dir.child", "dir.corner", "vp.child", "vp.corner", "ex_ids"):
@@ -259,7 +286,8 @@ class RITree:
                 **self.meta}
 
     _ARRAYS = ("box_lo", "box_hi", "class_of", "vp_pos", "vp_face", "dir_rect", "ex_node", "ex_kind",
-               "ex_ids", "ex_pos", "ex_corner") + tuple(f"s.{k}" for k in PackedSamples.FIELDS)
+               "ex_ids", "ex_pos", "ex_corner", "dir_err", "dir_flags", "vp_err", "vp_flags") \
+        + tuple(f"s.{k}" for k in PackedSamples.FIELDS)
 
     @classmethod
     def from_parts(cls, header: dict, arrays: dict) -> "RITree":
@@ -278,7 +306,8 @@ class RITree:
                    samples=PackedSamples(**{k: a[f"s.{k}"] for k in PackedSamples.FIELDS},
                                          lo=np.asarray(a["box_lo"]), hi=np.asarray(a["box_hi"])),
                    ex_node=a["ex_node"], ex_kind=a["ex_kind"], ex_ids=a["ex_ids"],
-                   ex_pos=a["ex_pos"], ex_corner=a["ex_corner"],
+                   ex_pos=a["ex_pos"], ex_corner=a["ex_corner"], dir_err=a["dir_err"],
+                   dir_flags=a["dir_flags"], vp_err=a["vp_err"], vp_flags=a["vp_flags"],
                    meta={k: v for k, v in header.items() if k not in ("layout", "params", "diag")})
 
 
