@@ -121,7 +121,7 @@ def start_bake(context, obj, report: Report | None = None) -> BakeJob:
     report = report if report is not None else Report()
     if running_job(obj.name):
         raise ExportError(f"{obj.name}: a bake is already running")
-    path = cache.cache_path(obj)
+    path = cache.bake_target(obj)
     cache.check_writable(path)
     scene, params, meta = prepare_bake(context, obj, report)
     if context.scene.riray.target is None:
@@ -142,6 +142,8 @@ def finish_job(job: BakeJob, report_fn=None) -> None:
         doc = backend.read_header(job.cache_path) or {}
         meta = doc.get("meta", {})
         if obj is not None:
+            if not obj.riray.cache_file:
+                obj.riray.baked_cache = cache.as_setting(job.cache_path)
             obj.riray.baked_fingerprint = meta.get("fingerprint", "")
             obj.riray.baked_info = json.dumps({"bytes": job.bytes, "seconds": job.elapsed,
                                                "backend": doc.get("backend", "")})
@@ -325,6 +327,7 @@ class RIRAY_OT_bake_clear(bpy.types.Operator):
         if os.path.exists(path):
             os.remove(path)
             self.report({"INFO"}, f"removed {path}")
+        obj.riray.baked_cache = ""
         obj.riray.baked_fingerprint = ""
         obj.riray.baked_info = ""
         cache._on_load()

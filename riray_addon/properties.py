@@ -94,6 +94,9 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                                options=compat.BLEND_RELATIVE,
                                description="RI-Tree cache file; empty: //<blend>.<object>.rit "
                                            "beside the .blend")
+    baked_cache: StringProperty(name="Baked cache", default="", options={"HIDDEN"},
+                                description="Where the last bake went when no cache file is "
+                                            "set (followed on rename and save)")
     baked_fingerprint: StringProperty(name="Baked fingerprint", default="",
                                       options={"HIDDEN"},
                                       description="Fingerprint of geometry/transform/material "
@@ -213,15 +216,17 @@ def adopt_custom_properties() -> int:
     data-blocks whose settings were adopted or repaired.
 
     From 5.0 such a dict is a custom property apart from the registered settings: it is copied
-    into them and removed when the data-block has no registered settings stored yet (else it is
-    what Blender keeps of a file saved before 5.0, and the registered copy wins). Before 5.0 the
+    into them and removed unless the registered settings already hold some of its keys (then it
+    is what Blender keeps of a file saved before 5.0, and the registered copy wins). Before 5.0 the
     dict *is* the registered storage, so only values stored with a type the property does not
     read (an enum item's name, an integral float) are written again through the property."""
     n = 0
     for coll in (bpy.data.scenes, bpy.data.objects, bpy.data.materials, bpy.data.worlds):
         for idb in coll:
             legacy = compat.custom_property(idb, "riray")
-            if hasattr(legacy, "keys") and compat.registered_storage(idb, "riray") is None:
+            stored = compat.registered_storage(idb, "riray")
+            held = set(stored.keys()) if hasattr(stored, "keys") else set()
+            if hasattr(legacy, "keys") and not held & set(legacy.keys()):
                 _assign(idb, legacy.to_dict())
                 del idb["riray"]
                 n += 1

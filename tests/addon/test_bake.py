@@ -139,3 +139,59 @@ def test_bad_settings_refused_before_the_bake(bl, tmp_path):
     p.viewpoint_depth, p.min_direction_depth, p.bake_for_cameras = 9, 1, False
     params = bl.operators.checked_params(obj)
     assert params["viewpoint_refine"] == 0 and params["viewpoint_depth"] == 9
+
+
+def _fresh(bl, obj):
+    return bl.cache.tree_status(obj, bl.bpy.context.evaluated_depsgraph_get())["state"] == "fresh"
+
+
+def test_cache_follows_the_file_and_the_object(bl, tmp_path):
+    """A bake made before the first save moves beside the .blend on saving; renaming the
+    object keeps the cache (renamed on the next save); Save As copies it beside the new file
+    and leaves the old file's; a duplicate baked after moving gets its own cache."""
+    bpy = bl.bpy
+    bpy.ops.surface.primitive_nurbs_surface_sphere_add(radius=0.5)
+    obj = bpy.context.active_object
+    assert bpy.ops.riray.bake(object=obj.name, viewpoint_depth=1, direction_depth=1) == \
+        {"FINISHED"}
+    temp = bl.cache.cache_path(obj)
+    assert os.path.isfile(temp) and not temp.startswith(str(tmp_path)) and _fresh(bl, obj)
+    # -- first save: moved beside the .blend, nothing left in the temporary folder
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "a.blend"))
+    beside = tmp_path / "a.SurfSphere.rit"
+    assert bl.cache.cache_path(obj) == str(beside) and beside.is_file()
+    assert not os.path.exists(temp) and _fresh(bl, obj)
+    # -- rename: still found; the next save renames the file
+    obj.name = "Ball"
+    assert _fresh(bl, obj)
+    bpy.ops.wm.save_mainfile()
+    assert (tmp_path / "a.Ball.rit").is_file() and not beside.exists()
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "a.blend"))
+    obj = bpy.data.objects["Ball"]
+    assert bl.cache.cache_path(obj) == str(tmp_path / "a.Ball.rit") and _fresh(bl, obj)
+    # -- Save As elsewhere: a copy beside the new file; the old file keeps its cache
+    (tmp_path / "b").mkdir()
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "b" / "b.blend"))
+    assert bl.cache.cache_path(obj) == str(tmp_path / "b" / "b.Ball.rit") and _fresh(bl, obj)
+    assert (tmp_path / "a.Ball.rit").is_file()
+    # -- Save Copy: the copy gets a cache, the open file keeps pointing at its own
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "c.blend"), copy=True)
+    assert (tmp_path / "c.Ball.rit").is_file()
+    assert bl.cache.cache_path(obj) == str(tmp_path / "b" / "b.Ball.rit")
+    for blend, rit in (("a.blend", "a.Ball.rit"), ("c.blend", "c.Ball.rit")):
+        bpy.ops.wm.open_mainfile(filepath=str(tmp_path / blend))
+        obj = bpy.data.objects["Ball"]
+        assert bl.cache.cache_path(obj) == str(tmp_path / rit) and _fresh(bl, obj)
+    # -- a duplicate shares the cache until it is baked, then it has its own
+    bpy.context.view_layer.objects.active = obj
+    obj.select_set(True)
+    bpy.ops.object.duplicate()
+    dup = bpy.context.active_object
+    assert dup.name != "Ball" and bl.cache.cache_path(dup) == bl.cache.cache_path(obj)
+    dup.location.x += 2.0
+    bpy.context.view_layer.update()
+    assert bpy.ops.riray.bake(object=dup.name, viewpoint_depth=1, direction_depth=1) == \
+        {"FINISHED"}
+    own = bl.cache.cache_path(dup)
+    assert own != bl.cache.cache_path(obj) and own == str(tmp_path / "c.Ball_001.rit")
+    assert _fresh(bl, dup) and _fresh(bl, obj)
