@@ -31,6 +31,7 @@ from ..core.geometry.primitives import transform
 from ..core.scene.model import (Camera, Light, Mesh, Patch, RenderSettings, Scene,
                                 SpecularObject, World)
 from . import materials as matmap
+from .nodegraph import SurfaceContext, object_random_id
 from .properties import spline_group
 from .report import ExportError, Report
 
@@ -346,12 +347,25 @@ def _hidden(obj) -> bool:
     return bool(orig.hide_render)
 
 
-def _env_meshes(obj, depsgraph, report: Report, materials: dict, cache: dict,
-                matrix=None, name: str | None = None) -> list[Mesh]:
+def _surface_context(obj, matrix: np.ndarray, random_id: int) -> SurfaceContext:
+    """The object data node graphs read (texture space, Object Info), Cycles' conventions:
+    Random = random_id / (2^32 - 1)."""
+    data = getattr(obj, "data", None)
+    loc = tuple(getattr(data, "texspace_location", (0.0, 0.0, 0.0)))
+    size = tuple(getattr(data, "texspace_size", (1.0, 1.0, 1.0)))
+    return SurfaceContext(matrix=matrix, texspace_location=loc, texspace_size=size,
+                          color=tuple(obj.color), pass_index=int(obj.pass_index),
+                          random=(random_id & 0xFFFFFFFF) / float(0xFFFFFFFF))
+
+
+def _env_meshes(obj, depsgraph, report: Report, materials: dict,
+                cache: "matmap.EnvironmentMaterials", matrix=None, name: str | None = None,
+                random_id: int = 0) -> list[Mesh]:
     with EvaluatedMesh(obj, depsgraph, matrix) as em:
         if not em.has_faces:
             return []
         arr = em.arrays(with_uvs=True)
+        world_matrix = em.matrix
     slots = _material_slots(obj)
     out = []
     pmat = arr["poly_material"][arr["tri_poly"]]
@@ -362,10 +376,11 @@ def _env_meshes(obj, depsgraph, report: Report, materials: dict, cache: dict,
             if not np.any(sel):
                 continue
             mat = slots[mi] if mi < len(slots) else None
-            key = mat.name if mat is not None else "__default__"
-            if key not in cache:
-                cache[key] = matmap.environment_material(mat, report, obj, has_uvs=arr["uvs"] is not None)
-            core_mat = cache[key]
+            base = name or obj.name
+            surface = _surface_context(obj, world_matrix, random_id)
+            if mat is not None:
+                surface.material_index = int(mat.pass_index)
+            core_mat = cache.get(mat, obj, base, arr["uvs"] is not None, surface)
             materials[core_mat.name] = core_mat
             tris = arr["tris"][sel]
             if arr["uvs"] is not None:
@@ -379,7 +394,6 @@ def _env_meshes(obj, depsgraph, report: Report, materials: dict, cache: dict,
             else:
                 vid, inv = np.unique(tris.ravel(), return_inverse=True)
                 verts, uvs, tri = arr["vertices"][vid], None, inv.reshape(-1, 3).astype(np.int64)
-            base = name or obj.name
             name_k = base if len(out) == 0 else f"{base}.{len(out)}"
             out.append(Mesh(name=name_k, vertices=verts, triangles=tri, material=core_mat.name,
                             uvs=uvs, smooth=bool(smooth)))
@@ -438,7 +452,11 @@ def export_environment(depsgraph, exclude, report: Report):
     """(meshes, materials, lights, world) of everything the depsgraph renders but ``exclude``:
     objects in enabled collections, not hidden for rendering, and their instances (collection
     instances, particles, geometry-node instances), each with its own world matrix."""
-    meshes, materials, lights, cache = [], {}, [], {}
+    cam = depsgraph.scene.camera
+    cam_matrix = matrix_np(cam.evaluated_get(depsgraph).matrix_world) if cam is not None \
+        else None
+    meshes, materials, lights = [], {}, []
+    cache = matmap.EnvironmentMaterials(report, cam_matrix)
     exclude_name = exclude.name if exclude is not None else None
     counts: dict[str, int] = {}
     for inst in depsgraph.object_instances:
@@ -456,14 +474,16 @@ def export_environment(depsgraph, exclude, report: Report):
         name = orig.name if k == 1 else f"{orig.name}.inst{k - 1}"
         matrix = inst.matrix_world.copy()
         if obj.type in MESH_LIKE:
-            meshes.extend(_env_meshes(obj, depsgraph, report, materials, cache, matrix, name))
+            rid = int(inst.random_id) if inst.is_instance else object_random_id(orig.name)
+            meshes.extend(_env_meshes(obj, depsgraph, report, materials, cache, matrix, name,
+                                      rid))
         elif obj.type == "LIGHT":
             light = export_light(obj, report, matrix, name)
             if light is not None:
                 lights.append(light)
         elif obj.type not in {"CAMERA", "EMPTY", "LIGHT_PROBE", "ARMATURE", "SPEAKER"}:
             report.info(f"{orig.name}: {obj.type.lower()} objects are not part of the environment")
-    world = matmap.export_world(depsgraph.scene.world, report)
+    world = matmap.export_world(depsgraph.scene.world, report, cam_matrix)
     return meshes, materials, lights, world
 
 

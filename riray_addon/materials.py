@@ -11,16 +11,20 @@ Specular object (``object_material``), from the shader at the active Material Ou
 Roughness, textured inputs, mixes and other shaders are reported with what was used instead.
 Highlights (specular / shininess) come from material.riray.
 
-Environment (``environment_material``): Principled / Diffuse BSDF -> "diffuse" with the base
-colour; Emission (or a Principled with emission) -> "emission". Colour sources core supports:
-constant; Image Texture (UV, optional uniform Mapping scale); Checker Texture (colours swapped
-to core's parity convention; a Mapping with one zero axis scale gives stripes); a linear
-gradient = Color Ramp (2 stops, linear) or Mix (A/B) driven by [Map Range ->] Separate XYZ of
-UV / Object coordinates. Other nodes -> the socket's own colour, reported.
+Environment (``environment_material``): the fixed patterns core has texture kinds for, when
+they describe the tree exactly: Principled / Diffuse BSDF -> "diffuse" with the base colour;
+Emission (or a Principled with emission) -> "emission"; colour sources: constant; Image Texture
+(UV, optional uniform Mapping scale); Checker Texture (colours swapped to core's parity
+convention; a Mapping with one zero axis scale gives stripes); a linear gradient = Color Ramp
+(2 stops, linear) or Mix (A/B) driven by [Map Range ->] Separate XYZ of UV / Object
+coordinates. Any other tree becomes a "nodes" material: its shader node graph
+(riray_addon/nodegraph.py), which core evaluates node by node; nodes it cannot evaluate give
+the socket's own value, reported.
 
-World (``export_world``): Background colour (constant), a Color Ramp on Separate XYZ.Z of the
-Generated/Normal/Object coordinate (core's horizon -> zenith gradient), or an equirectangular
-Environment Texture; strength; ambient from world.riray.ambient.
+World (``export_world``): likewise Background colour (constant), a Color Ramp on Separate
+XYZ.Z of the Generated/Normal/Object coordinate (core's horizon -> zenith gradient), or an
+equirectangular Environment Texture, else the world's node graph; strength; ambient from
+world.riray.ambient.
 """
 
 from __future__ import annotations
@@ -29,6 +33,8 @@ import numpy as np
 
 from ..core.scene.model import Material, ObjectMaterial, Texture, World
 from . import compat
+from .nodegraph import SurfaceContext, surface_graph, world_graph
+from .report import Report
 
 # Below this the roughness of a specular shader is treated as zero without a report.
 ROUGH_OK = 0.02
@@ -159,8 +165,9 @@ def _coords_default(default: str, ctx: _Ctx) -> str:
 
 
 # --------------------------------------------------------------------------- colour sources
-def image_pixels(img) -> np.ndarray | None:
-    """(H, W, 3) linear float64, top row first, or None if the image has no pixels."""
+def image_pixels(img, linearize: bool = True) -> np.ndarray | None:
+    """(H, W, 3) float64, top row first, or None if the image has no pixels; 8-bit sRGB images
+    are linearized unless ``linearize`` is off (then the pixels are as stored)."""
     w, h = img.size[0], img.size[1]
     if w == 0 or h == 0:
         return None
@@ -171,7 +178,7 @@ def image_pixels(img) -> np.ndarray | None:
     if px.shape[2] < 3:
         px = np.repeat(px[:, :, :1], 3, axis=2)
     cs = img.colorspace_settings.name
-    if not img.is_float and cs == "sRGB":
+    if linearize and not img.is_float and cs == "sRGB":
         px = srgb_to_linear(px)
     return np.ascontiguousarray(px)
 
@@ -418,8 +425,62 @@ def object_material(mat, report, owner: str = "") -> ObjectMaterial:
     return ObjectMaterial(kind="mirror", tint=(1.0, 1.0, 1.0), **hl)
 
 
-def environment_material(mat, report, obj, has_uvs: bool = True) -> Material:
-    """A core environment Material (named after the Blender material)."""
+def environment_material(mat, report, obj, has_uvs: bool = True,
+                         surface: SurfaceContext | None = None, camera=None) -> Material:
+    """A core environment Material (named after the Blender material): a fixed pattern when
+    one describes the tree exactly, else its node graph (``surface`` and ``camera``, the scene
+    camera's 4 x 4 matrix, give the graph its object and camera coordinates)."""
+    return _environment_material(mat, report, obj, has_uvs, surface, camera)[0]
+
+
+def _environment_material(mat, report, obj, has_uvs, surface, camera):
+    """(Material, whether it holds data of ``surface``'s object)."""
+    probe = Report()
+    legacy = _fixed_environment_material(mat, probe, obj, has_uvs)
+    if not probe or mat is None:
+        return legacy, False
+    graph, dependent = surface_graph(compat.shader_tree(mat), report, f"material {mat.name!r}",
+                                     surface or SurfaceContext(), camera)
+    if graph is None:
+        for level, msg in probe.items:
+            report.add(level, msg)
+        return legacy, False
+    return Material(name=mat.name, kind="nodes", graph=graph), dependent
+
+
+class EnvironmentMaterials:
+    """Core materials for the environment's Blender materials, translated once each; a node
+    graph holding one object's data (object coordinates, Object Info) is translated again for
+    every object, as ``"<material> [<object>]"``."""
+
+    def __init__(self, report, camera=None):
+        self.report, self.camera = report, camera
+        self.shared: dict = {}          # Blender material name -> Material or None (per object)
+        self.per_object: dict = {}      # (material name, object name) -> Material
+
+    def get(self, mat, obj, name: str, has_uvs: bool, surface: SurfaceContext) -> Material:
+        key = mat.name if mat is not None else "__default__"
+        got = self.shared.get(key, False)
+        if got is False:
+            m, dependent = _environment_material(mat, self.report, obj, has_uvs, surface,
+                                                 self.camera)
+            self.shared[key] = None if dependent else m
+            if dependent:
+                m.name = f"{key} [{name}]"
+                self.per_object[(key, name)] = m
+            return m
+        if got is not None:
+            return got
+        if (key, name) not in self.per_object:
+            m, _ = _environment_material(mat, self.report, obj, has_uvs, surface, self.camera)
+            m.name = f"{key} [{name}]"
+            self.per_object[(key, name)] = m
+        return self.per_object[(key, name)]
+
+
+def _fixed_environment_material(mat, report, obj, has_uvs: bool) -> Material:
+    """The environment Material from the fixed patterns (texture kinds), approximations
+    reported."""
     ident = True
     try:
         m = np.array(obj.matrix_world)
@@ -463,11 +524,27 @@ def environment_material(mat, report, obj, has_uvs: bool = True) -> Material:
     return Material(name=mat.name, kind="diffuse", color=tex)
 
 
-def export_world(world, report) -> World:
-    """The core World (colour, horizon->zenith gradient or equirectangular image)."""
+def export_world(world, report, camera=None) -> World:
+    """The core World: colour, horizon->zenith gradient or equirectangular image when one
+    describes the world's tree exactly, else its node graph (``camera``: the scene camera's
+    4 x 4 matrix, for camera coordinates)."""
     if world is None:
         report.info("the scene has no world; the background is black")
         return World(kind="color", color=(0.0, 0.0, 0.0))
+    probe = Report()
+    fixed = _fixed_world(world, probe)
+    if not probe:
+        return fixed
+    graph = world_graph(compat.shader_tree(world), report, f"world {world.name!r}", camera)
+    if graph is None:
+        for level, msg in probe.items:
+            report.add(level, msg)
+        return fixed
+    return World(kind="nodes", graph=graph, ambient=float(world.riray.ambient))
+
+
+def _fixed_world(world, report) -> World:
+    """The World from the fixed patterns (kinds color / gradient / image)."""
     ambient = float(world.riray.ambient)
     ctx = _Ctx(report, f"world {world.name!r}")
     tree = compat.shader_tree(world)

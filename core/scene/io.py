@@ -18,6 +18,7 @@ import numpy as np
 from ..geometry.knots import GeometryError, check_surface
 from ..geometry.nurbs import NurbsSurface
 from ..render.image import ImageError, atomic_write, read_float_image, read_png
+from .graph import GraphError, graph_from_dict, graph_to_dict
 from .model import (Camera, Light, Material, Mesh, ObjectMaterial, Patch, RenderSettings, Scene,
                     SpecularObject, Texture, World)
 
@@ -50,8 +51,9 @@ LIGHT_KINDS = {"point": ("color", "position", "power", "shadows"),
                "sun": ("color", "direction", "strength", "shadows")}
 WORLD_KINDS = {"color": ("color", "strength", "ambient"),
                "gradient": ("color", "zenith", "strength", "ambient"),
-               "image": ("path", "strength", "ambient")}
-MATERIAL_KINDS = ("diffuse", "emission")
+               "image": ("path", "strength", "ambient"),
+               "nodes": ("graph", "strength", "ambient")}
+MATERIAL_KINDS = ("diffuse", "emission", "nodes")
 OBJECT_MATERIAL_KINDS = ("mirror", "glass", "dielectric")
 CAMERA_KINDS = ("perspective", "orthographic")
 SENSOR_FITS = ("AUTO", "HORIZONTAL", "VERTICAL")
@@ -284,7 +286,30 @@ def _texture(v, path: str, images: _Images) -> Texture:
     return t
 
 
+# Pixels standing in for graph images when a scene is only validated (save_scene): the graph
+# checks that every image node has pixels, not what they are.
+UNLOADED_IMAGE = np.zeros((1, 1, 3))
+
+
+def _graph(v, path: str, images: _Images, owner: str):
+    """A shader node graph (riray.scene.graph); errors name ``owner`` and the node."""
+    def load(rel, where):
+        img = images(rel, _at(path, where))
+        return UNLOADED_IMAGE if img is None else img
+
+    try:
+        return graph_from_dict(v, load)
+    except GraphError as e:
+        _fail(_at(path, e.where) if e.where else path, f"{owner}: {e.msg}")
+
+
 def _material(v, path: str, images: _Images) -> Material:
+    if isinstance(v, dict) and v.get("kind") == "nodes":
+        _obj(v, path, ("name", "kind", "graph"), (), " for material kind 'nodes'")
+        name = _string(v["name"], _at(path, "name"))
+        return Material(name=name, kind="nodes",
+                        graph=_graph(v["graph"], _at(path, "graph"), images,
+                                     f"material {name!r}"))
     _obj(v, path, ("name",), ("kind", "color", "strength"))
     m = Material(name=_string(v["name"], _at(path, "name")))
     m.kind = _string(v.get("kind", m.kind), _at(path, "kind"), MATERIAL_KINDS, "kind")
@@ -446,7 +471,7 @@ def _light(v, path: str) -> Light:
 def _world(v, path: str, images: _Images) -> World:
     kind = _kind(v, path, WORLD_KINDS, "color")
     fields = WORLD_KINDS[kind]
-    _obj(v, path, ("path",) if kind == "image" else (), ("kind",) + fields,
+    _obj(v, path, {"image": ("path",), "nodes": ("graph",)}.get(kind, ()), ("kind",) + fields,
          f" for world kind {kind!r}")
     w = World(kind=kind)
     if "color" in fields:
@@ -456,6 +481,8 @@ def _world(v, path: str, images: _Images) -> World:
     if kind == "image":
         w.path = _string(v["path"], _at(path, "path"))
         w.image = images(w.path, _at(path, "path"))
+    if kind == "nodes":
+        w.graph = _graph(v["graph"], _at(path, "graph"), images, "the world")
     w.strength = _number(v.get("strength", w.strength), _at(path, "strength"), ge=0)
     w.ambient = _number(v.get("ambient", w.ambient), _at(path, "ambient"), ge=0)
     return w
@@ -682,13 +709,28 @@ def _light_dict(li: Light) -> dict:
     return out
 
 
+def _graph_dict(g, owner: str) -> dict:
+    try:
+        return graph_to_dict(g)
+    except GraphError as e:
+        raise SceneError(f"{owner}: {e.msg}") from None
+
+
+def _material_dict(m: Material) -> dict:
+    if m.kind == "nodes":
+        return {"name": m.name, "kind": "nodes",
+                "graph": _graph_dict(m.graph, f"material {m.name!r}")}
+    return {"name": m.name, "kind": m.kind, "color": _texture_dict(m.color),
+            "strength": float(m.strength)}
+
+
 def _world_dict(w: World) -> dict:
     if w.kind == "image" and not w.path:
         raise SceneError(f"an image world needs a path to be saved (got {w.path!r})")
     out = {"kind": w.kind}
     for key in WORLD_KINDS.get(w.kind, ()):
         val = getattr(w, key)
-        out[key] = val if key == "path" else (
+        out[key] = val if key == "path" else _graph_dict(val, "world") if key == "graph" else (
             float(val) if key in ("strength", "ambient") else list(map(float, val)))
     return out
 
@@ -708,8 +750,7 @@ def scene_to_dict(scene: Scene) -> dict:
                          "shininess": float(om.shininess)},
             "patches": [_patch_dict(p) for p in scene.object.patches]},
         "environment": {"meshes": [_mesh_dict(m) for m in scene.meshes]},
-        "materials": [{"name": m.name, "kind": m.kind, "color": _texture_dict(m.color),
-                       "strength": float(m.strength)} for m in scene.materials.values()],
+        "materials": [_material_dict(m) for m in scene.materials.values()],
         "lights": [_light_dict(li) for li in scene.lights],
         "world": _world_dict(scene.world),
         "cameras": [_camera_dict(c) for c in scene.cameras],

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..geometry.nurbs import NurbsSurface
+from .graph import ShaderGraph
 
 RGB = tuple[float, float, float]
 
@@ -50,12 +51,15 @@ class Texture:
 
 @dataclass
 class Material:
-    """An environment material. kind: "diffuse" (Lambert, lit) or "emission" (unlit colour)."""
+    """An environment material. kind: "diffuse" (Lambert, lit), "emission" (unlit colour) or
+    "nodes" (a shader node graph, ``graph``: emission plus a lit diffuse albedo, evaluated by
+    trace/nodes.py; ``color`` and ``strength`` are not used)."""
 
     name: str
     kind: str = "diffuse"
     color: Texture = field(default_factory=Texture)
     strength: float = 1.0
+    graph: ShaderGraph | None = None
 
 
 @dataclass
@@ -134,7 +138,8 @@ class Light:
 class World:
     """What a ray that escapes everything sees, times ``strength``. kind: "color", "gradient"
     (``color`` at and below the horizon -> ``zenith``, t = clamp(direction z, 0, 1)), "image"
-    (equirectangular, +X at the image centre, like Blender)."""
+    (equirectangular, +X at the image centre, like Blender), "nodes" (the emission of the
+    shader node graph ``graph`` for the ray direction, trace/nodes.py)."""
 
     kind: str = "color"
     color: RGB = (0.05, 0.05, 0.05)
@@ -143,6 +148,7 @@ class World:
     image: np.ndarray | None = field(default=None, repr=False)
     strength: float = 1.0
     ambient: float = 0.0                 # constant ambient term for diffuse environment shading
+    graph: ShaderGraph | None = None
 
 
 @dataclass

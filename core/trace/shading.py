@@ -2,7 +2,8 @@
 illumination.
 
 Environment materials: "emission" radiance = texture * strength (lights ignored); "diffuse"
-radiance = albedo / pi * (world.ambient + sum of light irradiances), with
+radiance = albedo / pi * (world.ambient + sum of light irradiances); "nodes" radiance = the
+graph's emission + its albedo / pi * (the same), both from trace/nodes.py; with
 point light  E = color * power / (4 pi r^2) * max(0, n.l)
 sun          E = color * strength * max(0, n.l)
 and n the shading normal turned towards the incoming ray. Shadow rays are cast only for lights
@@ -17,6 +18,7 @@ import numpy as np
 
 from ..scene.model import Light, ObjectMaterial, Scene
 from .meshes import MeshSet
+from .nodes import ShadingPoints, evaluate
 from .textures import eval_texture, eval_world
 
 SHADOW_OFFSET = 1e-7    # fraction of the scene's bounding-box diagonal (at least 1 m): shadow
@@ -46,11 +48,14 @@ class Environment:
                 raise ValueError(f"mesh {m.name!r}: material {m.material!r} is not in "
                                  f"scene.materials ({sorted(scene.materials)})")
             mat = scene.materials[m.material]
-            if mat.kind not in ("diffuse", "emission"):
-                raise ValueError(f"material {mat.name!r}: kind must be 'diffuse' or "
-                                 f"'emission', got {mat.kind!r}")
+            if mat.kind not in ("diffuse", "emission", "nodes"):
+                raise ValueError(f"material {mat.name!r}: kind must be 'diffuse', 'emission' "
+                                 f"or 'nodes', got {mat.kind!r}")
+            if mat.kind == "nodes" and mat.graph is None:
+                raise ValueError(f"material {mat.name!r}: kind 'nodes' needs a graph")
             tex = mat.color
-            if tex.kind != "constant" and tex.coords == "uv" and m.uvs is None:
+            if mat.kind != "nodes" and tex.kind != "constant" and tex.coords == "uv" \
+                    and m.uvs is None:
                 raise ValueError(f"mesh {m.name!r}: material {mat.name!r} has a uv-mapped "
                                  f"texture but the mesh has no uvs")
             self.materials.append(mat)
@@ -79,7 +84,7 @@ class Environment:
             sl = slice(c0, min(n, c0 + SHADE_CHUNK))
             out[sl] = self._shade_chunk(origins[sl], dirs[sl], tmin[sl])
         self.stats["env_rays"] += n
-        return np.minimum(out, MAX_RADIANCE)
+        return np.clip(out, -MAX_RADIANCE, MAX_RADIANCE)
 
     def _shade_chunk(self, origins, dirs, tmin):
         hit = self.meshes.closest_hit(origins, dirs, tmin)
@@ -90,6 +95,21 @@ class Environment:
         for k in np.unique(hit.mesh[hit.hit]):
             sel = np.flatnonzero(hit.mesh == k)
             mat = self.materials[k]
+            # normals turned towards the incoming ray (the geometric side decides)
+            back = np.einsum("ij,ij->i", hit.geo_normal[sel], dirs[sel]) > 0
+            flip = np.where(back, -1.0, 1.0)[:, None]
+            normal, geo = hit.normal[sel] * flip, hit.geo_normal[sel] * flip
+            if mat.kind == "nodes":
+                cl = evaluate(mat.graph, ShadingPoints(
+                    position=hit.point[sel], normal=normal, true_normal=geo,
+                    incoming=-dirs[sel], uv=hit.uv[sel], backfacing=back))
+                out[sel] = cl.emission
+                lit = np.flatnonzero(np.any(cl.albedo != 0, axis=1))
+                if len(lit):
+                    irr = self.irradiance(hit.point[sel[lit]], normal[lit], geo[lit],
+                                          self.occluder)
+                    out[sel[lit]] += cl.albedo[lit] * (self.world.ambient + irr) / np.pi
+                continue
             tex = mat.color
             if tex.kind == "constant":
                 albedo = np.broadcast_to(np.asarray(tex.color, dtype=np.float64), (len(sel), 3))
@@ -98,10 +118,7 @@ class Environment:
             if mat.kind == "emission":
                 out[sel] = albedo * mat.strength
                 continue
-            # normals turned towards the incoming ray (the geometric side decides)
-            flip = np.where(np.einsum("ij,ij->i", hit.geo_normal[sel], dirs[sel]) > 0, -1.0, 1.0)
-            irr = self.irradiance(hit.point[sel], hit.normal[sel] * flip[:, None],
-                                  hit.geo_normal[sel] * flip[:, None], self.occluder)
+            irr = self.irradiance(hit.point[sel], normal, geo, self.occluder)
             out[sel] = albedo * (self.world.ambient + irr) / np.pi
         return out
 

@@ -17,6 +17,7 @@ World kinds (returned colours are multiplied by ``World.strength``):
   image     equirectangular, Blender's Environment Texture mapping: u = 0.5 - atan2(dy, dx)/(2 pi)
             (+X at the centre column, +Y at u = 0.25), v = 0.5 + atan2(dz, hypot(dx, dy))/pi
             (zenith at the top row); u wraps, v is clamped.
+  nodes     the emission of the world's shader node graph (trace/nodes.py) for each direction
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..scene.model import Texture, World
+from .nodes import ShadingPoints, equirectangular, evaluate
 
 # Checker/stripe coordinates are offset by this many checks before flooring so that surfaces lying
 # exactly on a check boundary (a floor at z = 0 hit at z = -1e-15) do not flicker between colours.
@@ -100,9 +102,10 @@ def eval_world(world: World, dirs: np.ndarray) -> np.ndarray:
     elif world.kind == "image":
         if world.image is None:
             raise ValueError(f"world image {world.path!r} is not loaded")
-        u = 0.5 - np.arctan2(d[:, 1], d[:, 0]) / (2 * np.pi)
-        v = 0.5 + np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1])) / np.pi
+        u, v = equirectangular(d)
         col = _bilinear(world.image, u, v, wrap_v=False)
+    elif world.kind == "nodes":
+        col = evaluate(world.graph, ShadingPoints.world(d)).emission
     else:
         raise ValueError(f"unknown world kind {world.kind!r}")
     return col * world.strength
