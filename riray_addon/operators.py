@@ -390,16 +390,17 @@ class RIRAY_OT_export_scene(bpy.types.Operator):
 
 
 def write_scene_json(scene, path: str) -> None:
-    """save_scene, writing in-memory images (textures, world) as .npy files beside the JSON."""
+    """save_scene, writing in-memory images (textures, world, graph image nodes) as .npy files
+    beside the JSON."""
     from ..core.render.image import write_float_image
+    from ..core.scene.io import in_memory_images
     stem = os.path.splitext(path)[0]
     folder = os.path.dirname(path)
     os.makedirs(folder, exist_ok=True)
-    for i, tex in enumerate([m.color for m in scene.materials.values()] + [scene.world]):
-        if getattr(tex, "image", None) is not None:
-            name = f"{os.path.basename(stem)}_img{i}.npy"
-            write_float_image(os.path.join(folder, name), tex.image)
-            tex.path = name
+    for i, (pixels, set_path) in enumerate(in_memory_images(scene)):
+        name = f"{os.path.basename(stem)}_img{i}.npy"
+        write_float_image(os.path.join(folder, name), pixels)
+        set_path(name)
     save_scene(scene, path)
 
 

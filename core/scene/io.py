@@ -757,6 +757,23 @@ def scene_to_dict(scene: Scene) -> dict:
     }
 
 
+def in_memory_images(scene: Scene) -> list:
+    """[(pixels, set_path)] for every image the scene holds (textures, the world, image nodes
+    of graphs), ``set_path(path)`` storing the file it is to be saved as."""
+    out = []
+    holders = [m.color for m in scene.materials.values() if m.kind != "nodes"] + [scene.world]
+    for h in holders:
+        if h.image is not None:
+            out.append((h.image, lambda p, h=h: setattr(h, "path", p)))
+    graphs = [m.graph for m in scene.materials.values() if m.kind == "nodes"]
+    graphs += [scene.world.graph] if scene.world.kind == "nodes" else []
+    for g in graphs:
+        for n in g.nodes:
+            if "image" in n.props:
+                out.append((n.props["image"], lambda p, n=n: n.props.__setitem__("path", p)))
+    return out
+
+
 def _dumps(v, indent: int = 0) -> str:
     """JSON text: objects one key per line, flat lists of scalars on one line."""
     pad = " " * (indent + 2)

@@ -585,7 +585,7 @@ ROOM_CASES = {
 }
 
 
-FIXED_PATTERN_CASES = {"image_uv"}
+FIXED_PATTERN_CASES = {"image_uv", "environment_linear"}
 
 
 @pytest.mark.parametrize("case", sorted(ROOM_CASES))
@@ -601,3 +601,170 @@ def test_room_graph_matches_cycles(bl, tmp_path, case):
     # the object-dependent graph is exported once per object that uses it
     assert sorted(scene.materials) in (["room"], ["room [Box]", "room [Room]"])
     assert not rep.messages("WARNING"), rep
+
+
+def _tex_coord_other_object(output):
+    """Object coordinates of another object (the node's Object field): an empty."""
+    def build(g):
+        bpy = g.bl.bpy
+        empty = bpy.data.objects.new("Frame", None)
+        bpy.context.scene.collection.objects.link(empty)
+        empty.location, empty.rotation_euler, empty.scale = (0.5, -1, 2), (0.3, 0.2, 1.0), \
+            (1.5, 0.8, 2.0)
+        return g.out(g.node("ShaderNodeTexCoord", object=empty), output)
+    return build
+
+
+ROOM_CASES["tex_coord_object_of_an_empty"] = _tex_coord_other_object("Object")
+
+
+def _world_ramp(g):
+    sep = g.node("ShaderNodeSeparateXYZ", {"Vector": g.out(g.node("ShaderNodeTexCoord"),
+                                                              "Generated")})
+    node = g.node("ShaderNodeValToRGB", {"Fac": g.out(sep, "Z")})
+    els = node.color_ramp.elements
+    els[0].color, els[1].color = (0.8, 0.7, 0.6, 1), (0.1, 0.3, 0.9, 1)
+    els.new(0.3).color = (0.9, 0.9, 1.0, 1)
+    return g.out(node, "Color")
+
+
+def _world_environment(interp, mapped):
+    def build(g):
+        img = g.image("sky", 16, 8, seed=9)
+        ins = {}
+        if mapped:
+            ins["Vector"] = g.out(g.node("ShaderNodeMapping", {
+                "Vector": g.out(g.node("ShaderNodeTexCoord"), "Generated"),
+                "Rotation": (0.2, -0.3, 0.8)}, vector_type="VECTOR"))
+        n = g.node("ShaderNodeTexEnvironment", ins, interpolation=interp)
+        n.image = img
+        return g.out(n, "Color")
+    return build
+
+
+def _world_shaders(g):
+    """Mix Shader of two backgrounds (factor: the direction's z) plus an emission."""
+    z = g.out(g.node("ShaderNodeSeparateXYZ", {"Vector": g.pos()}), "Z")
+    b1 = g.node("ShaderNodeBackground", {"Color": (0.9, 0.5, 0.2, 1), "Strength": 1.5})
+    b2 = g.node("ShaderNodeBackground", {"Color": g.out(g.node("ShaderNodeTexCoord"),
+                                                         "Reflection"), "Strength": 0.7})
+    mix = g.node("ShaderNodeMixShader", {"Fac": z, "Shader": g.out(b1), "Shader_001": g.out(b2)})
+    em = g.node("ShaderNodeEmission", {"Color": (0.1, 0.2, 0.1, 1), "Strength": 2.0})
+    return g.out(g.node("ShaderNodeAddShader", {"Shader": g.out(mix), "Shader_001": g.out(em)}))
+
+
+def _world_checker_sky(g):
+    """Checks on the sky from rotated generated coordinates and a gradient."""
+    tc = g.node("ShaderNodeTexCoord")
+    mp = g.node("ShaderNodeMapping", {"Vector": g.out(tc, "Generated"),
+                                      "Rotation": (0.0, 0.4, 0.3), "Scale": (3, 3, 3)})
+    chk = g.node("ShaderNodeTexChecker", {"Vector": g.out(mp), "Scale": 1.0,
+                                          "Color1": (0.9, 0.9, 0.8, 1),
+                                          "Color2": (0.2, 0.3, 0.5, 1)})
+    grad = g.node("ShaderNodeTexGradient", {"Vector": g.out(tc, "Object")},
+                  gradient_type="RADIAL")
+    return g.out(g.node("ShaderNodeMix", {"Factor_Float": g.out(grad, "Fac"),
+                                          "A_Color": g.out(chk, "Color"),
+                                          "B_Color": (0.8, 0.2, 0.1, 1)},
+                        data_type="RGBA", blend_type="SOFT_LIGHT"), "Result_Color")
+
+
+WORLD_CASES = {
+    **{f"tex_coord_{o.lower()}": _tex_coord(o) for o in
+       ("Generated", "Normal", "Object", "Camera", "Reflection")},
+    "tex_coord_object_of_an_empty": _tex_coord_other_object("Object"),
+    **{f"geometry_{o.lower()}": _geometry(o) for o in ("Position", "Normal", "Incoming")},
+    **{f"gradient_{k.lower()}": (lambda k: lambda g: g.out(g.node(
+        "ShaderNodeTexGradient", {"Vector": g.vec(scale=(0.8, 0.7, 0.9),
+                                                  offset=(0.1, 0.0, -0.1))},
+        gradient_type=k), "Color"))(k) for k in ("LINEAR", "SPHERICAL", "RADIAL", "EASING")},
+    "color_ramp_3_stops": _world_ramp,
+    "environment_linear": _world_environment("Linear", False),
+    "environment_closest_mapped": _world_environment("Closest", True),
+    "shaders_mix_add": _world_shaders,
+    "combined_checker_sky": _world_checker_sky,
+}
+
+
+@pytest.mark.parametrize("case", sorted(WORLD_CASES))
+def test_world_graph_matches_cycles(bl, tmp_path, case):
+    scene, _, rep = compare(bl, tmp_path, world=WORLD_CASES[case])
+    assert scene.world.kind == ("image" if case in FIXED_PATTERN_CASES else "nodes")
+    assert not rep.messages("WARNING"), rep
+
+
+# --------------------------------------------------------------------------- what is not evaluated
+def _graph_of(scene, name="room"):
+    return next(m for m in scene.materials.values() if m.name.startswith(name)).graph
+
+
+def _export(bl, mirror):
+    rep = bl.report.Report()
+    scene = bl.export.export_scene(bl.bpy.context.evaluated_depsgraph_get(), mirror, rep,
+                                   cameras="ACTIVE")
+    return scene, " | ".join(rep.messages("WARNING"))
+
+
+def test_unsupported_nodes_give_the_socket_value_and_one_warning(bl, tmp_path):
+    """A node core does not evaluate is replaced by the value of the socket it feeds, with one
+    warning naming the node and the material; the rest of the graph is kept."""
+    def room(g):
+        noise = g.node("ShaderNodeTexNoise", {"Vector": g.pos()})
+        math = g.node("ShaderNodeMath", {"Value": g.out(noise, "Fac"), "Value_001": 0.25},
+                      operation="ADD")
+        math.inputs[0].default_value = 0.5               # what replaces the noise
+        path = g.node("ShaderNodeLightPath")
+        mix = g.node("ShaderNodeMix", {"Factor_Float": g.out(path, "Is Camera Ray"),
+                                       "A_Color": g.rgb(g.out(math), 0.2, 0.1),
+                                       "B_Color": (0.3, 0.3, 0.3, 1)}, data_type="RGBA")
+        next(s for s in mix.inputs if s.identifier == "Factor_Float").default_value = 0.0
+        return g.out(mix, "Result_Color")
+
+    mirror = build_scene(bl, tmp_path, room=room)
+    scene, warn = _export(bl, mirror)
+    assert warn.count("'Noise Texture'") == 1 and warn.count("'Light Path'") == 1
+    assert "material 'room'" in warn and "(TEX_NOISE) is not supported" in warn
+    img = render_exact(scene, width=W, height=H, workers=1).image
+    assert np.allclose(img[~np.isclose(img, 0).all(axis=2)], [0.75, 0.2, 0.1], atol=1e-6)
+    math = next(n for n in _graph_of(scene).nodes if n.type == "math")
+    assert "a" not in math.links and math.inputs["a"] == 0.5
+
+
+def test_unsupported_outputs_shaders_and_settings_are_reported(bl, tmp_path):
+    def room(g):
+        tc = g.node("ShaderNodeTexCoord")
+        glossy = g.node("ShaderNodeBsdfGlossy", {"Color": g.out(tc, "Window")})
+        glossy.inputs["Color"].default_value = (0.1, 0.6, 0.2, 1)
+        ramp = g.node("ShaderNodeValToRGB")
+        ramp.color_ramp.interpolation = "B_SPLINE"
+        em = g.node("ShaderNodeEmission", {"Color": g.out(ramp, "Color")})
+        em.inputs["Color"].default_value = (0.4, 0.0, 0.0, 1)
+        return g.out(g.node("ShaderNodeAddShader", {"Shader": g.out(glossy),
+                                                    "Shader_001": g.out(em)}))
+
+    mirror = build_scene(bl, tmp_path, room=room)
+    scene, warn = _export(bl, mirror)
+    assert "output 'Window' of node 'Texture Coordinate'" in warn
+    assert "shader 'Glossy BSDF' (BSDF_GLOSSY) is shaded as diffuse" in warn
+    assert "'Color Ramp' (VALTORGB): interpolation B_SPLINE is not supported" in warn
+    g = _graph_of(scene)
+    diffuse = next(n for n in g.nodes if n.type == "diffuse")
+    emission = next(n for n in g.nodes if n.type == "emission")
+    assert np.allclose(diffuse.inputs["color"], (0.1, 0.6, 0.2))
+    assert np.allclose(emission.inputs["color"], (0.4, 0.0, 0.0))
+
+
+def test_graph_scene_survives_the_json_file(bl, tmp_path):
+    """riray.export_scene writes graph materials, the world graph and their images (as .npy)
+    into a scene file that riray's loader renders to the same pixels."""
+    from riray.scene.io import load_scene
+    mirror = build_scene(bl, tmp_path, room=_image(projection="BOX"),
+                         world=_world_environment("Closest", True))
+    scene, _ = _export(bl, mirror)
+    path = tmp_path / "scene" / "graph.json"
+    assert bl.bpy.ops.riray.export_scene(filepath=str(path), object=mirror.name) == {"FINISHED"}
+    again = load_scene(path)
+    assert again.world.kind == "nodes" and {m.kind for m in again.materials.values()} == {"nodes"}
+    a = render_exact(scene, width=W, height=H, workers=1).image
+    b = render_exact(again, width=W, height=H, workers=1).image
+    assert a.std() > 0.05 and np.abs(a - b).max() < 1e-12
