@@ -73,6 +73,18 @@ def spline_surface(spline):
         spline.use_endpoint_u, spline.use_endpoint_v, spline.use_bezier_u, spline.use_bezier_v)
 
 
+def zero_weight(spline) -> str | None:
+    """'control point k (u i, v j) has weight w' for the first control point of a spline whose
+    weight is not > 0 (Blender accepts 0; a rational surface cannot have it), else None."""
+    w = spline_points(spline)[:, 3]
+    bad = np.flatnonzero(~(w > 0))
+    if not len(bad):
+        return None
+    k = int(bad[0])
+    nu = spline.point_count_u
+    return f"control point {k} (u {k % nu}, v {k // nu}) has weight {w[k]:g}"
+
+
 def spline_surfaces(obj, report: Report | None = None) -> list[tuple[int, object]]:
     """[(spline index, NurbsSurface in object space)] for the surface splines of ``obj``."""
     out = []
@@ -81,6 +93,11 @@ def spline_surfaces(obj, report: Report | None = None) -> list[tuple[int, object
             if report is not None:
                 report.warning(f"{obj.name}: spline {i} is a curve ({sp.point_count_u} x "
                                f"{sp.point_count_v} points), not a surface; skipped")
+            continue
+        bad = zero_weight(sp)
+        if bad is not None:
+            if report is not None:
+                report.warning(f"{obj.name}: spline {i} skipped: {bad}; weights must be > 0")
             continue
         try:
             out.append((i, spline_surface(sp)))
@@ -317,12 +334,21 @@ def export_object(obj, depsgraph, report: Report | None = None) -> SpecularObjec
         raise ExportError(f"{obj.name}: text objects cannot be the specular object; convert "
                           "it to a mesh or curve first (Object > Convert)")
     if obj.type not in {"SURFACE", "MESH", "CURVE", "META"}:
-        raise ExportError(f"{obj.name}: a {obj.type.lower()} object has no surface to export; "
+        kind = obj.type.lower().replace("_", " ")
+        article = "an" if kind[0] in "aeiou" else "a"
+        raise ExportError(f"{obj.name}: {article} {kind} object has no surface to export; "
                           "select a NURBS surface, mesh or curve object")
     obj_eval = obj.evaluated_get(depsgraph)
     if obj.type == "SURFACE":
         patches, used = _surface_patches(obj, obj_eval, report)
         if not patches:
+            weights = [(i, zero_weight(sp)) for i, sp in enumerate(obj_eval.data.splines)
+                       if spline_is_surface(sp)]
+            weights = [(i, w) for i, w in weights if w is not None]
+            if weights:
+                i, bad = weights[0]
+                raise ExportError(f"{obj.name}: nothing to export: in spline {i}, {bad}; NURBS "
+                                  "weights must be > 0")
             raise ExportError(f"{obj.name}: nothing to export: the surface has no NURBS surface "
                               "splines (only curves or invalid splines)")
     else:

@@ -159,7 +159,10 @@ def test_bad_objects_give_reports(bl):
     with pytest.raises(err, match="text objects"):
         bl.export.export_object(bpy.context.active_object, dg())
     bpy.ops.object.empty_add()
-    with pytest.raises(err, match="no surface"):
+    with pytest.raises(err, match="Empty: an empty object has no surface to export"):
+        bl.export.export_object(bpy.context.active_object, dg())
+    bpy.ops.object.light_add(type="POINT")
+    with pytest.raises(err, match="Point: a light object has no surface"):
         bl.export.export_object(bpy.context.active_object, dg())
     me = bpy.data.meshes.new("nofaces")
     me.from_pydata([(0, 0, 0), (1, 0, 0)], [(0, 1)], [])
@@ -177,6 +180,28 @@ def test_bad_objects_give_reports(bl):
     bpy.context.view_layer.objects.active = o
     with pytest.raises(RuntimeError, match="no faces"):
         bpy.ops.riray.bake(object="nofaces")
+
+
+def test_zero_weight_control_point_is_named(bl):
+    """Blender lets a CV's weight be 0; the export names the spline and control point instead
+    of reporting that the surface has no surface splines."""
+    bpy = bl.bpy
+    obj = _add(bpy, "surface")
+    obj.name = "Sheet"
+    obj.data.splines[0].points[5].co[3] = 0.0
+    with pytest.raises(bl.report.ExportError,
+                       match=r"Sheet: nothing to export: in spline 0, control point 5 \(u 1, "
+                             r"v 1\) has weight 0; NURBS weights must be > 0"):
+        bl.export.export_object(obj, bpy.context.evaluated_depsgraph_get())
+    # with a valid second spline the bad one is skipped and reported the same way
+    joined = _add(bpy, "surface", location=(3, 0, 0))
+    obj.select_set(True)
+    bpy.context.view_layer.objects.active = joined
+    bpy.ops.object.join()
+    rep = bl.report.Report()
+    so = bl.export.export_object(joined, bpy.context.evaluated_depsgraph_get(), rep)
+    assert len(so.patches) == 1
+    assert any("control point 5 (u 1, v 1) has weight 0" in m for m in rep.messages("WARNING"))
 
 
 def _principled(bl, name, **inputs):
