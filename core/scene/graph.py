@@ -392,9 +392,10 @@ def _topological(nodes: list, by_name: dict, output: Link) -> list:
 NODE_KEYS = ("name", "type", "inputs")
 
 
-def graph_from_dict(d, load_image: Callable[[str, str], np.ndarray]) -> ShaderGraph:
-    """The ShaderGraph of a JSON-shaped dict; ``load_image(path, where)`` returns the pixels of
-    an image file (H, W, 3 linear float64). Raises GraphError."""
+def graph_from_dict(d, load_image: Callable[[str, str, bool], np.ndarray]) -> ShaderGraph:
+    """The ShaderGraph of a JSON-shaped dict; ``load_image(path, where, encoded)`` returns the
+    pixels of an image file (H, W, 3 float64: linear, or sRGB-encoded as stored for ``encoded``,
+    the image nodes with ``srgb``). Raises GraphError."""
     if not isinstance(d, dict):
         raise GraphError("", "expected an object with version, nodes and output")
     for key in d:
@@ -449,7 +450,7 @@ def _node_from_dict(v, i: int, load_image) -> GraphNode:
             if not isinstance(val, str) or not val:
                 raise GraphError(f"{where}.path", f"{who}: expected an image file path")
             node.props["path"] = val
-            node.props["image"] = load_image(val, f"{where}.path")
+            node.props["image"] = load_image(val, f"{where}.path", v.get("srgb") is True)
         elif key in spec.props and spec.props[key].kind == "image":
             raise GraphError(f"{where}.{key}", f"{who}: give the image as \"path\"")
         elif key in spec.props and spec.props[key].kind == "stops":

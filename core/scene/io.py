@@ -17,7 +17,7 @@ import numpy as np
 
 from ..geometry.knots import GeometryError, check_surface
 from ..geometry.nurbs import NurbsSurface
-from ..render.image import ImageError, atomic_write, read_float_image, read_png
+from ..render.image import ImageError, atomic_write, read_float_image, read_png, read_png_samples
 from .graph import GraphError, graph_from_dict, graph_to_dict
 from .model import (Camera, Light, Material, Mesh, ObjectMaterial, Patch, RenderSettings, Scene,
                     SpecularObject, Texture, World)
@@ -233,18 +233,27 @@ class _Images:
     def __init__(self, base_dir: str | None, load: bool):
         self.base_dir, self.load, self.cache = base_dir, load, {}
 
-    def __call__(self, rel: str, path: str) -> np.ndarray | None:
+    def __call__(self, rel: str, path: str, encoded: bool = False) -> np.ndarray | None:
+        """Linear pixels, or with ``encoded`` a PNG's sRGB-encoded samples as stored (in
+        [0, 1]; .npy files are always taken as they are)."""
         if not self.load:
             return None
         full = rel if self.base_dir is None else os.path.join(self.base_dir, rel)
-        if full not in self.cache:
+        key = (full, encoded and full.lower().endswith(".png"))
+        if key not in self.cache:
             ext = os.path.splitext(full)[1].lower()
             if ext not in (".png", ".npy"):
                 _fail(path, f"unsupported image type {ext!r} (use .png or .npy)")
             if not os.path.isfile(full):
                 _fail(path, f"image file not found: {full}")
             try:
-                img = read_png(full) if ext == ".png" else read_float_image(full)
+                if key[1]:
+                    samples, maxcode = read_png_samples(full)
+                    img = samples[:, :, :3] if samples.shape[2] >= 3 else \
+                        np.repeat(samples[:, :, :1], 3, axis=2)
+                    img = img.astype(np.float64) / maxcode
+                else:
+                    img = read_png(full) if ext == ".png" else read_float_image(full)
             except ImageError as e:
                 _fail(path, str(e))
             if max(img.shape[:2]) > MAX_IMAGE_SIDE:
@@ -252,8 +261,8 @@ class _Images:
                             f"({img.shape[:2]})")
             if not np.isfinite(img).all():
                 _fail(path, f"image {full} contains NaN/inf")
-            self.cache[full] = img
-        return self.cache[full]
+            self.cache[key] = img
+        return self.cache[key]
 
 
 def _texture(v, path: str, images: _Images) -> Texture:
@@ -293,8 +302,8 @@ UNLOADED_IMAGE = np.zeros((1, 1, 3))
 
 def _graph(v, path: str, images: _Images, owner: str):
     """A shader node graph (riray.scene.graph); errors name ``owner`` and the node."""
-    def load(rel, where):
-        img = images(rel, _at(path, where))
+    def load(rel, where, encoded):
+        img = images(rel, _at(path, where), encoded)
         return UNLOADED_IMAGE if img is None else img
 
     try:

@@ -103,9 +103,14 @@ class Environment:
                 cl = evaluate(mat.graph, ShadingPoints(
                     position=hit.point[sel], normal=normal, true_normal=geo,
                     incoming=-dirs[sel], uv=hit.uv[sel], backfacing=back))
+                lit = np.any(cl.albedo != 0, axis=1)
+                if lit.all():
+                    irr = self.irradiance(hit.point[sel], normal, geo, self.occluder)
+                    out[sel] = cl.emission + cl.albedo * (self.world.ambient + irr) / np.pi
+                    continue
                 out[sel] = cl.emission
-                lit = np.flatnonzero(np.any(cl.albedo != 0, axis=1))
-                if len(lit):
+                if lit.any():       # only points with an albedo cast shadow rays
+                    lit = np.flatnonzero(lit)
                     irr = self.irradiance(hit.point[sel[lit]], normal[lit], geo[lit],
                                           self.occluder)
                     out[sel[lit]] += cl.albedo[lit] * (self.world.ambient + irr) / np.pi

@@ -247,6 +247,18 @@ def _tex_coord(output, **attrs):
     return lambda g: g.out(g.node("ShaderNodeTexCoord", **attrs), output)
 
 
+def _tex_coord_other_object(output):
+    """Object coordinates of another object (the node's Object field): an empty."""
+    def build(g):
+        bpy = g.bl.bpy
+        empty = bpy.data.objects.new("Frame", None)
+        bpy.context.scene.collection.objects.link(empty)
+        empty.location, empty.rotation_euler, empty.scale = (0.5, -1, 2), (0.3, 0.2, 1.0), \
+            (1.5, 0.8, 2.0)
+        return g.out(g.node("ShaderNodeTexCoord", object=empty), output)
+    return build
+
+
 def _geometry(output):
     return lambda g: g.out(g.node("ShaderNodeNewGeometry"), output)
 
@@ -543,6 +555,7 @@ def _combined_tiles(g):
 ROOM_CASES = {
     **{f"tex_coord_{o.lower()}": _tex_coord(o) for o in
        ("Generated", "Normal", "UV", "Object", "Camera", "Reflection")},
+    "tex_coord_object_of_an_empty": _tex_coord_other_object("Object"),
     **{f"geometry_{o.lower().replace(' ', '_')}": _geometry(o) for o in
        ("Position", "Normal", "True Normal", "Incoming", "Backfacing")},
     "object_info": _object_info,
@@ -603,19 +616,6 @@ def test_room_graph_matches_cycles(bl, tmp_path, case):
     assert not rep.messages("WARNING"), rep
 
 
-def _tex_coord_other_object(output):
-    """Object coordinates of another object (the node's Object field): an empty."""
-    def build(g):
-        bpy = g.bl.bpy
-        empty = bpy.data.objects.new("Frame", None)
-        bpy.context.scene.collection.objects.link(empty)
-        empty.location, empty.rotation_euler, empty.scale = (0.5, -1, 2), (0.3, 0.2, 1.0), \
-            (1.5, 0.8, 2.0)
-        return g.out(g.node("ShaderNodeTexCoord", object=empty), output)
-    return build
-
-
-ROOM_CASES["tex_coord_object_of_an_empty"] = _tex_coord_other_object("Object")
 
 
 def _world_ramp(g):

@@ -4,14 +4,16 @@ the scene format's validation and round trip."""
 
 import json
 import math
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from riray.scene import io
-from riray.scene.graph import (LUMA, MATH_OPS, GraphError, GraphNode, Link, ShaderGraph,
-                               graph_from_dict, graph_to_dict)
-from riray.scene.model import Light, Material, Mesh, Scene, SpecularObject, World
+from riray.scene.graph import (LUMA, MATH_OPS, NODE_TYPES, GraphError, GraphNode, Link,
+                               ShaderGraph, graph_from_dict, graph_to_dict)
+from riray.scene.model import Light, Material, Mesh, Patch, Scene, SpecularObject, World
 from riray.trace.nodes import RAMP_TABLE, ShadingPoints, evaluate, sample_image, srgb_to_linear
 from riray.trace.shading import Environment
 from riray.trace.textures import eval_world
@@ -425,7 +427,6 @@ def _floor_scene(graph, world=None, lights=()):
     floor = Mesh(name="floor", material="g", vertices=np.array(
         [[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], float),
         triangles=np.array([[0, 1, 2], [0, 2, 3]]))
-    from riray.scene.model import Patch
     return Scene(object=SpecularObject("o", [Patch("p", 0, vertices=np.eye(3),
                                                    triangles=np.array([[0, 1, 2]]))]),
                  meshes=[floor], materials={"g": Material("g", kind="nodes", graph=graph)},
@@ -548,3 +549,43 @@ def test_graph_errors_from_code_name_the_node():
         ShaderGraph(nodes=[GraphNode("i", "image")], output=Link("i", "color"))
     with pytest.raises(GraphError, match="unknown key 'nodez'"):
         graph_from_dict({"version": 1, "nodez": [], "output": {}}, None)
+
+
+def test_srgb_image_node_reads_the_png_samples(tmp_path):
+    """With ``srgb`` an image node keeps a PNG's encoded samples and linearizes after the
+    blend; without it the PNG is linearized on load (as textures are)."""
+    from riray.render.image import linear_to_u8, write_png
+    px = np.random.default_rng(2).uniform(0.0, 1.0, (2, 3, 3))
+    write_png(tmp_path / "t.png", px)
+    codes = linear_to_u8(px) / 255.0
+    g = _graph_json()
+    g["nodes"].append({"name": "i", "type": "image", "path": "t.png", "srgb": True,
+                       "interpolation": "linear", "extension": "extend",
+                       "inputs": {"vector": [0.5 / 3 + 1 / 6, 0.75, 0.0]}})
+    g["output"] = {"node": "i", "output": "color"}
+    enc = io.scene_from_dict(_scene_dict(g), tmp_path).materials["g"].graph
+    g["nodes"][-1]["srgb"] = False
+    lin = io.scene_from_dict(_scene_dict(g), tmp_path).materials["g"].graph
+    np.testing.assert_allclose(enc.nodes[-1].props["image"], codes, atol=EPS)
+    np.testing.assert_allclose(lin.nodes[-1].props["image"], srgb_to_linear(codes), atol=1e-12)
+    got = evaluate(enc, points([0, 0, 0])).emission[0]          # between pixels 0 and 1
+    np.testing.assert_allclose(got, srgb_to_linear((codes[0, 0] + codes[0, 1]) / 2), atol=1e-12)
+
+
+def test_documented_graph_example_loads():
+    """docs/scene-format.md: the node-graph example is a valid graph, and the node table lists
+    every node type with every input and output."""
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "scene-format.md").read_text()
+    section = doc[doc.index("## Node graphs"):doc.index("## Supported range")]
+    g = graph_from_dict(json.loads(re.search(r"```\n(.*?)```", section, re.S).group(1)), None)
+    assert [n.type for n in g.nodes][-1] == "emission"
+    rows = {}
+    for line in section.splitlines():
+        cells = line.split("|")
+        if len(cells) > 4 and cells[1].strip().startswith("`"):
+            for name in re.findall(r"`(\w+)`", cells[1]):
+                rows[name] = "|".join(cells[2:4])
+    for t, spec in NODE_TYPES.items():
+        assert t in rows, t
+        for name in list(spec.inputs) + list(spec.outputs):
+            assert f"`{name}`" in rows[t], (t, name)
