@@ -46,7 +46,9 @@ def _query_options(args):
                         distance=None if args.distance < 0 else args.distance,
                         threshold_on=args.threshold_on,
                         threshold_leaves=args.threshold_leaves,
-                        null_interp=args.null_rays == "interpolate").validate()
+                        null_interp=args.null_rays == "interpolate",
+                        max_error_deg=None if args.max_error < 0 else args.max_error,
+                        path_identity=args.path_identity).validate()
 
 
 def _tree_opts(p):
@@ -66,6 +68,13 @@ def _tree_opts(p):
                    help="with --threshold-on samples: compare the samples of all direction "
                    "leaves (the default) or only of leaves at the maximum depth (a shallower "
                    "leaf passed the bake's midpoint test; fewer mirror rays traced)")
+    p.add_argument("--max-error", type=float, default=-1.0, metavar="DEG",
+                   help="interpolate a ray only where the errors the bake measured in everything "
+                   "it blends (its four direction leaves and its viewpoint cell) are at most DEG "
+                   "degrees; trace the others (-1: off, the default; no re-bake needed)")
+    p.add_argument("--path-identity", action="store_true",
+                   help="trace a ray whose usable samples differ in ray-tree hash (event "
+                   "sequence) or whose leaves / viewpoint cell the bake saw change path")
     p.add_argument("--null-rays", choices=("interpolate", "trace"), default="interpolate",
                    help="a ray whose interpolants are all null (trapped) is answered null "
                    "(interpolate, the default) or traced (trace, the paper)")

@@ -40,9 +40,11 @@ class Located:
     """Rays that found their four direction leaves. ``ray`` indexes the query's rays; per DQ
     k (the viewpoint cell's corners in quadtree corner order): direction tree ``trees[:, k]``,
     leaf node ``leaf[:, k]`` and the ray's cell-local (lx, ly) in it; (alpha, beta) is the
-    entry point's position in the viewpoint cell, all in [0, 1]."""
+    entry point's position in the viewpoint cell ``vnode`` (a viewpoint-forest leaf), all in
+    [0, 1]."""
 
     ray: np.ndarray      # (m,) int64
+    vnode: np.ndarray    # (m,) int64
     alpha: np.ndarray    # (m,)
     beta: np.ndarray     # (m,)
     trees: np.ndarray    # (m, 4) int64
@@ -95,5 +97,5 @@ def locate(tree, o, d, tmax):
     k = np.flatnonzero(ok)
     if len(k) == len(ok):
         k = slice(None)
-    return Located(ray=q[k], alpha=alpha[k], beta=beta[k], trees=trees[k], leaf=leaf[k],
-                   lx=lx[k], ly=ly[k]), outside
+    return Located(ray=q[k], vnode=vnode[k], alpha=alpha[k], beta=beta[k], trees=trees[k],
+                   leaf=leaf[k], lx=lx[k], ly=ly[k]), outside

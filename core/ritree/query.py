@@ -31,6 +31,7 @@ from .extras import extra_weights
 from .interp import (BILINEAR, EXTRA, EXTRAPOLATED, FAIL, TRIANGLE, UNIT_CORNERS,
                      bilinear_weights, cell_weights, drop_outlier, far_pairs, may_have_far_pairs)
 from .locate import Located, locate
+from .tree import BOUNDARY, PATH_CHANGE
 
 # Rays per block of the blend stage: bounds its (rays, 24, 12) float32 sample gather to 38 MB.
 BLEND_BLOCK = 1 << 15
@@ -46,8 +47,9 @@ ANSWER_NAMES = ("miss", "interpolated_16", "interpolated_reduced", "interpolated
                 "interpolated_extrapolated", "traced", "traced_outside_tree", "interpolated_null")
 # Why a ray was traced.
 WHY_CLASSES, WHY_USABLE, WHY_THRESHOLD, WHY_RAYTREE, WHY_BLEND = 1, 2, 3, 4, 5
+WHY_TOLERANCE, WHY_UNSAMPLED, WHY_PATH = 6, 7, 8
 WHY_NAMES = ("", "more_than_two_classes", "too_few_usable", "threshold", "raytree_mismatch",
-             "degenerate_blend")
+             "degenerate_blend", "tolerance", "unsampled_hit", "path_change")
 
 
 @dataclass
@@ -66,6 +68,11 @@ class QueryOptions:
                                        # depth: a shallower leaf passed the bake's midpoint test)
     null_interp: bool = True           # a ray whose interpolants (class rules, null rays
                                        # counted) are all null is null; False: traced (the paper)
+    max_error_deg: float | None = None  # degrees: interpolate only where the errors the bake
+                                       # measured in the ray's four leaves and its viewpoint
+                                       # cell are within it, else trace (None: off)
+    path_identity: bool = False        # trace rays whose usable samples differ in ray-tree hash
+                                       # or whose leaves / cell the bake saw change path
 
     def validate(self) -> "QueryOptions":
         if self.policy not in ("ri", "raytree"):
@@ -76,7 +83,7 @@ class QueryOptions:
         if self.threshold_leaves not in ("unverified", "all"):
             raise ValueError("threshold_leaves must be 'unverified' or 'all', "
                              f"got {self.threshold_leaves!r}")
-        for name in ("extrapolation", "angle_deg", "distance"):
+        for name in ("extrapolation", "angle_deg", "distance", "max_error_deg"):
             val = getattr(self, name)
             if val is not None and not (np.isfinite(val) and val >= 0):
                 raise ValueError(f"{name} must be None or a finite number >= 0, got {val!r}")
@@ -249,6 +256,13 @@ class TreeQuery:
                                                 np.flatnonzero(n_cls == 2), s_ids)
         ans[rows[pc == -1]] = MISS
         go = np.flatnonzero(pc >= 0)
+        if opt.max_error_deg is not None:
+            with clock("first_hits"):
+                self._check_misses(o, d, tmax, loc, np.flatnonzero(pc == -1), set_of, s_leaf,
+                                   ans, why)
+            go = self._within_tolerance(loc, go, set_of, s_leaf, ans, why)
+        if opt.path_identity:
+            go = self._same_path(loc, go, set_of, pc, s_ids, s_leaf, ans, why)
         if len(go) == 0:
             return len(two)
         thresholds = opt.angle_deg is not None or opt.distance is not None
@@ -376,6 +390,55 @@ class TreeQuery:
             out[k] = blend(items.vals, set_of[r], wr)
             best[k] = np.argmax(np.abs(wr), axis=1)
         return out, best
+
+    def _within_tolerance(self, loc, go, set_of, s_leaf, ans, why):
+        """Of the located rays ``go``, those whose four leaves (decided once per set) and
+        viewpoint cell the bake measured within ``max_error_deg`` (an unmeasured NaN is not);
+        the others are traced (WHY_TOLERANCE)."""
+        tol = self.opt.max_error_deg
+        s_ok = np.all(self.tree.dir_err[s_leaf] <= tol, axis=1)
+        ok = s_ok[set_of[go]] & (self.tree.vp_err[loc.vnode[go]] <= tol)
+        bad = loc.ray[go[~ok]]
+        ans[bad] = TRACED
+        why[bad] = WHY_TOLERANCE
+        return go[ok]
+
+    def _same_path(self, loc, go, set_of, pc, s_ids, s_leaf, ans, why):
+        """Of the located rays ``go`` (classes ``pc``), those whose usable samples (their set's
+        corners of their class, not null) share one ray-tree hash and whose leaves and cell
+        the bake did not see change path (PATH_CHANGE); decided once per (set, class) unit.
+        The others are traced (WHY_PATH)."""
+        tab, tree = self.table, self.tree
+        unit_of, first = group_rows(np.stack([set_of[go], pc[go]], axis=1))
+        u_set = set_of[go][first]
+        ids = s_ids[u_set]
+        use = (tab.cls[ids] == pc[go][first][:, None]) & ~tab.null[ids]
+        h = tab.tree[ids].astype(np.int64)
+        top = np.where(use, h, -1).max(axis=1)
+        same = top <= np.where(use, h, np.iinfo(np.int64).max).min(axis=1)
+        u_ok = same & ~np.any(tree.dir_flags[s_leaf[u_set]] & PATH_CHANGE, axis=1)
+        ok = u_ok[unit_of] & (tree.vp_flags[loc.vnode[go]] & PATH_CHANGE == 0)
+        bad = loc.ray[go[~ok]]
+        ans[bad] = TRACED
+        why[bad] = WHY_PATH
+        return go[ok]
+
+    def _check_misses(self, o, d, tmax, loc, miss, set_of, s_leaf, ans, why):
+        """Tolerance mode, the rays ``miss`` the samples answer MISS (all 16 miss, or the exact
+        first hit against the candidate patches missed): the miss is trusted where the bake
+        verified it (within the tolerance, no object/miss boundary in the four leaves or the
+        cell); elsewhere the exact first hit against every patch decides, and a ray that hits
+        is traced (WHY_UNSAMPLED: paper Fig. 9(b), or a patch none of its samples hit)."""
+        tree, tol = self.tree, self.opt.max_error_deg
+        s_ok = np.all((tree.dir_err[s_leaf] <= tol) & (tree.dir_flags[s_leaf] & BOUNDARY == 0),
+                      axis=1)
+        c = loc.vnode[miss]
+        ok = s_ok[set_of[miss]] & (tree.vp_err[c] <= tol) & (tree.vp_flags[c] & BOUNDARY == 0)
+        r = loc.ray[miss[~ok]]
+        if len(r):
+            r = r[self.st.tracer.intersect(o[r], d[r], tmax=tmax[r]).hit]
+            ans[r] = TRACED
+            why[r] = WHY_UNSAMPLED
 
     def _first_hit_class(self, o, d, tmax, rows, set_of, two_sets, s_ids) -> np.ndarray:
         """Class of the exact first hit (-1: miss) of rays ``rows`` against only the distinct

@@ -43,7 +43,7 @@ class BakeParams:
     min_direction_depth: int = 1      # direction trees are split at least this deep
     tolerance_deg: float = 0.5        # split while the midpoint's interpolated output ray ...
     tolerance_dist: float = 0.002     # ... (or first hit / normal) misses the traced one by more
-    viewpoint_tolerance_deg: float = 1.0  # split viewpoint cells whose camera test rays answered
+    viewpoint_tolerance_deg: float = 0.25  # split viewpoint cells whose camera test rays answered
                                       # through the tree miss the exact ones by more (verify.py)
     search_steps: int = 8             # binary-search steps for the extra samples (paper 4.3)
     pad: float = 1e-3                 # bounding-box padding, relative to the diagonal

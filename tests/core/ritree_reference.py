@@ -25,6 +25,15 @@ Rules (policy "ri"; paper sections 4.1-4.3, 5.1-5.4), per ray:
 2.  Two-patch rule: > 2 classes among the 16 samples -> TRACED (more_than_two_classes). One
     class: that class (the miss class -1 -> MISS). Two classes: the exact first hit against the
     distinct patches of the 16 samples gives the class; no hit -> MISS.
+2b. Tolerance (issue #11, ``max_error_deg`` set): a ray of a class (>= 0) whose four leaves'
+    or viewpoint cell's baked error (``dir_err``, ``vp_err``) exceeds it, or was not measured,
+    is TRACED (tolerance).
+2c. Misses under a tolerance: a ray rule 2 answers MISS is traced (unsampled_hit) when its
+    exact first hit against all patches hits and its leaves or cell are not within the
+    tolerance or carry the BOUNDARY flag (an object/miss boundary the bake saw).
+2d. Path identity (``path_identity``), after 2b: a ray of a class whose usable corners (its
+    class, not null) hold more than one ray-tree hash, or whose leaves or cell carry the
+    PATH_CHANGE flag, is TRACED (path_change).
 3.  Usable: the query's class and not null.
 4.  Per-sample thresholds (``threshold_on="samples"``; angle = chord of the output directions,
     distance = of the output origins, |a - b|^2 > limit^2): pairs among the usable samples of
@@ -72,7 +81,8 @@ import numpy as np
 from riray.ritree.dircube import SLOT, dir_to_cube
 from riray.ritree.query import (EXTRA_S, EXTRAPOLATED_S, FULL, MISS, NULL_S, OUTSIDE, REDUCED,
                                 TRACED, WHY_BLEND, WHY_CLASSES, WHY_RAYTREE, WHY_THRESHOLD,
-                                WHY_USABLE)
+                                WHY_PATH, WHY_TOLERANCE, WHY_UNSAMPLED, WHY_USABLE)
+from riray.ritree.tree import BOUNDARY, PATH_CHANGE
 
 try:                                   # the staged query (adab97b) moved it to ritree.locate
     from riray.ritree.locate import entry_points
@@ -224,6 +234,7 @@ class Cell:
 
     alpha: float
     beta: float
+    vnode: int              # the viewpoint cell (a viewpoint-forest leaf)
     leaves: list            # 4 direction-forest nodes (one per viewpoint corner)
     trees: list             # their direction trees
     lq: list                # 4 cell-local query points (lx, ly)
@@ -273,7 +284,7 @@ def locate(tree, o, d, tmax):
         if min(c) < 0:
             return OUTSIDE
         ids.append(c)
-    return Cell(float(alpha[0]), float(beta[0]), [int(x) for x in leaf], trees,
+    return Cell(float(alpha[0]), float(beta[0]), vnode, [int(x) for x in leaf], trees,
                 [(float(lx[k]), float(ly[k])) for k in range(4)], ids)
 
 
@@ -298,8 +309,39 @@ def finish(ans, o, d, tmax, oo, od, pt, nm, cls, info):
     return Answer(ans, 0, oo, od, pt, nm, cls, info)
 
 
+def within_tolerance(data, cell, tol):
+    """Rule 2b: the errors the bake measured in the ray's four leaves and its viewpoint cell
+    are all at most ``tol`` degrees (an unmeasured NaN is not)."""
+    t = data.tree
+    errs = [float(t.dir_err[lf]) for lf in cell.leaves] + [float(t.vp_err[cell.vnode])]
+    return all(e <= tol for e in errs)
+
+
+def same_path(data, cell, pc):
+    """Rule 2d: the 16 samples of class ``pc`` that are not null share one ray-tree hash, and
+    no leaf nor the cell carries the PATH_CHANGE flag."""
+    t = data.tree
+    hashes = {int(data.hash[s]) for row in cell.ids for s in row
+              if data.cls[s] == pc and not data.null[s]}
+    return len(hashes) <= 1 and not any(int(t.dir_flags[lf]) & PATH_CHANGE for lf in cell.leaves) \
+        and not int(t.vp_flags[cell.vnode]) & PATH_CHANGE
+
+
+def verified_miss(data, cell, tol):
+    """Rule 2c: the ray's leaves and cell are within ``tol`` and none is BOUNDARY-flagged."""
+    t = data.tree
+    return within_tolerance(data, cell, tol) and \
+        not any(int(t.dir_flags[lf]) & BOUNDARY for lf in cell.leaves) and \
+        not int(t.vp_flags[cell.vnode]) & BOUNDARY
+
+
 def answer_ri(data, cell, pc, o, d, tmax, opt):
-    """Rules 3-11 for a located ray whose class is ``pc`` (>= 0)."""
+    """Rules 2b-11 for a located ray whose class is ``pc`` (>= 0)."""
+    tol = getattr(opt, "max_error_deg", None)
+    if tol is not None and not within_tolerance(data, cell, tol):
+        return Answer(TRACED, WHY_TOLERANCE, info={"pc": pc, "tolerance": True})
+    if getattr(opt, "path_identity", False) and not same_path(data, cell, pc):
+        return Answer(TRACED, WHY_PATH, info={"pc": pc, "path": True})
     samples = [[data.vals[s] for s in row] for row in cell.ids]
     usable = [[bool(data.cls[s] == pc and not data.null[s]) for s in row] for row in cell.ids]
     thresholds = opt.angle_deg is not None or opt.distance is not None
@@ -521,6 +563,12 @@ class Reference:
                       for i in range(len(self.o))]
         self.rule2 = [candidates(self.data, c) if isinstance(c, Cell) else None
                       for c in self.cells]
+        # the exact first hit of every located ray against all patches (rule 2c)
+        located = [i for i, c in enumerate(self.cells) if isinstance(c, Cell)]
+        self.any_hit = {}
+        if located:
+            hit = st.tracer.intersect(self.o[located], self.d[located], tmax=self.tmax[located])
+            self.any_hit = {i: bool(h) for i, h in zip(located, hit.hit)}
         # the exact first hit of each two-class ray against only its candidate patches
         two = [i for i, r in enumerate(self.rule2) if r is not None and r[0] == "two"]
         self.first_hit = {}
@@ -551,7 +599,11 @@ class Reference:
         if pc is None:
             return Answer(TRACED, WHY_CLASSES)
         if pc == -1:
-            return Answer(MISS, info={"pc": -1, "two_class": self.rule2[i][0] == "two"})
+            info = {"pc": -1, "two_class": self.rule2[i][0] == "two"}
+            tol = getattr(opt, "max_error_deg", None)
+            if tol is not None and not verified_miss(self.data, cell, tol) and self.any_hit[i]:
+                return Answer(TRACED, WHY_UNSAMPLED, info={**info, "unsampled": True})
+            return Answer(MISS, info=info)
         rec = answer_ri(self.data, cell, pc, o, d, tmax, opt)
         rec.info["two_class"] = self.rule2[i][0] == "two"
         return rec

@@ -38,7 +38,8 @@ from riray.ritree import tree as ritree
 from riray.ritree.bake import bake
 from riray.ritree.query import (ANSWER_NAMES, EXTRA_S, EXTRAPOLATED_S, FULL, MISS, NULL_S,
                                 OUTSIDE, REDUCED, TRACED, WHY_CLASSES, WHY_NAMES, WHY_RAYTREE,
-                                WHY_THRESHOLD, WHY_USABLE, QueryOptions, TreeQuery)
+                                WHY_PATH, WHY_THRESHOLD, WHY_TOLERANCE, WHY_UNSAMPLED,
+                                WHY_USABLE, QueryOptions, TreeQuery)
 from riray.ritree.region import region_for_cameras
 from riray.ritree.tree import BakeParams
 from riray.scene.samples import build
@@ -72,6 +73,10 @@ OPTIONS = {
     "raytree": QueryOptions(policy="raytree"),
     "intermediate": QueryOptions(angle_deg=20.0, threshold_on="intermediate"),
     "intermediate_dist": QueryOptions(angle_deg=None, distance=0.05, threshold_on="intermediate"),
+    "tolerance": QueryOptions(angle_deg=None, max_error_deg=1.0),
+    "tolerance_angle20": QueryOptions(angle_deg=20.0, max_error_deg=4.0),
+    "path": QueryOptions(angle_deg=None, path_identity=True),
+    "tolerance_path": QueryOptions(angle_deg=None, max_error_deg=2.0, path_identity=True),
 }
 
 # Cases: scene, camera baked for, BakeParams, max_events override, extra cameras whose rays are
@@ -83,26 +88,27 @@ CASES = {
                                            viewpoint_refine=1),
                          max_events=None, extra_cameras=("far",), clip=0.0,
                          options=("angle_off", "angle20", "angle5", "distance", "unverified",
-                                  "extrapolation", "raytree", "intermediate")),
+                                  "extrapolation", "raytree", "intermediate", "tolerance",
+                                  "path")),
     # Newell's teapot: six classes, many two-class rays (exact first hit) and > 2 classes
     "teapot": dict(scene="teapot", camera="close",
                    params=BakeParams(viewpoint_depth=3, direction_depth=5, viewpoint_refine=0),
                    max_events=None, extra_cameras=(), clip=0.0,
                    options=("angle_off", "angle20", "unverified", "extrapolation", "raytree",
-                            "intermediate_dist")),
+                            "intermediate_dist", "tolerance", "tolerance_path")),
     # the glass vase with at most 3 events: rays through both walls are trapped (null)
     "vase_glass_trapped": dict(scene="vase_glass", camera="close",
                                params=BakeParams(viewpoint_depth=3, direction_depth=5,
                                                  viewpoint_refine=0),
                                max_events=3, extra_cameras=(), clip=0.0,
                                options=("angle_off", "angle20", "no_null",
-                                        "extrapolation_angle20")),
+                                        "extrapolation_angle20", "tolerance_angle20")),
     "vase_mirror": dict(scene="vase_mirror", camera="close",
                         params=BakeParams(viewpoint_depth=3, direction_depth=5,
                                           viewpoint_refine=0),
                         max_events=None, extra_cameras=(), clip=0.3,
                         options=("angle_off", "unverified", "extrapolation", "intermediate",
-                                 "distance")),
+                                 "distance", "tolerance")),
 }
 PAIRS = [(c, o) for c, spec in CASES.items() for o in spec["options"]]
 
@@ -242,7 +248,10 @@ def test_rules_are_exercised(cases):
                   "outside": (OUTSIDE, 0), "traced classes": (TRACED, WHY_CLASSES),
                   "traced usable": (TRACED, WHY_USABLE),
                   "traced threshold": (TRACED, WHY_THRESHOLD),
-                  "traced raytree": (TRACED, WHY_RAYTREE)}
+                  "traced raytree": (TRACED, WHY_RAYTREE),
+                  "traced tolerance": (TRACED, WHY_TOLERANCE),
+                  "traced unsampled hit": (TRACED, WHY_UNSAMPLED),
+                  "traced path change": (TRACED, WHY_PATH)}
     missing = {k: kinds[v] for k, v in need_kinds.items() if kinds[v] < 3}
     assert not missing, f"answer kinds too rare in the compared rays: {missing}; all: {kinds}"
     need_paths = ("two-class miss", "two-class hit", "extra kind 1 side L",

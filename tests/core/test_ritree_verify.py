@@ -28,7 +28,7 @@ from riray.ritree import tree as ritree
 from riray.ritree.bake import bake
 from riray.ritree.dircube import CUBE, N_SLOTS, cube_to_dir
 from riray.ritree.interp import angle_between
-from riray.ritree.query import EXTRAPOLATED_S, FULL, QueryOptions, TreeQuery
+from riray.ritree.query import EXTRAPOLATED_S, FULL, WHY_TOLERANCE, QueryOptions, TreeQuery
 from riray.ritree.region import region_for_cameras
 from riray.ritree.tree import BOUNDARY, UNVERIFIED, BakeParams
 from riray.scene.io import look_at_matrix
@@ -209,3 +209,30 @@ def test_old_layout_is_refused(tmp_path, sphere):
     cache.save_tree(path, json.loads(json.dumps(tree.header())), arrays)
     with pytest.raises(cache.TreeCacheError, match="lacks arrays.*dir_err.*re-bake"):
         ritree.load(path)
+
+
+def test_tolerance_tightens_monotonically(sphere):
+    """--max-error: each tighter tolerance interpolates a subset of the rays of the looser one,
+    with the same answers, so the exact error of the interpolated rays (max and mean) never
+    grows and the rays it traces (tolerance) never shrink."""
+    st, cam, tree = sphere
+    o, d = camera_rays(cam, SIZE, SIZE)
+    tmax = st.env.hit_distance(o, d)
+    ex = st.object_function(o, d, tmax)
+    prev = None
+    for tol in (None, 8.0, 4.0, 2.0, 1.0, 0.5, 0.25):
+        res, ans, why, _ = TreeQuery(tree, st, QueryOptions(angle_deg=None,
+                                                            max_error_deg=tol))(o, d, tmax)
+        interp = (ans >= FULL) & (ans <= EXTRAPOLATED_S)
+        ok = interp & ex.hit & ~ex.null
+        err = np.degrees(angle_between(res.out_dir[ok], ex.out_dir[ok]))
+        cur = dict(interp=interp, out=res.out_dir, max=err.max(), mean=err.mean(),
+                   traced=np.sum(why == WHY_TOLERANCE))
+        if prev is not None:
+            assert not np.any(interp & ~prev["interp"])
+            assert np.array_equal(cur["out"][interp], prev["out"][interp])
+            assert cur["max"] <= prev["max"] and cur["mean"] <= prev["mean"]
+            assert cur["traced"] >= prev["traced"]
+        prev = cur
+    first = TreeQuery(tree, st, NO_THRESHOLDS)(o, d, tmax)[1]
+    assert prev["traced"] > 0.5 * np.sum((first >= FULL) & (first <= EXTRAPOLATED_S))
