@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.scene.graph import FLOAT, NODE_TYPES, SHADER, GraphError, GraphNode, Link, ShaderGraph
+from ..core.trace.nodes import hash_uint2
 
 # Cycles' camera space looks down +Z (Blender's camera looks down -Z): world -> camera is
 # diag(1, 1, -1) * inverse(camera matrix).
@@ -49,26 +50,14 @@ class SurfaceContext:
     random: float = 0.0
 
 
-def _rot(x: int, k: int) -> int:
-    return ((x << k) | (x >> (32 - k))) & 0xFFFFFFFF
-
-
 def object_random_id(name: str) -> int:
     """Cycles' random_id of an object that is not an instance: hash_uint2(hash_string(name), 0)
-    (a string hash i = 37 i + c over the name's bytes, as C chars, then Bob Jenkins' lookup3
-    final mix). Object Info's Random is this / (2^32 - 1)."""
+    (a string hash i = 37 i + c over the name's bytes, as C chars, then lookup3). Object Info's
+    Random is this / (2^32 - 1)."""
     h = 0
     for byte in name.encode("utf-8"):
-        c = byte - 256 if byte >= 128 else byte        # char is signed
-        h = (h * 37 + c) & 0xFFFFFFFF
-    a = b = c = (0xDEADBEEF + (2 << 2) + 13) & 0xFFFFFFFF
-    a = (a + h) & 0xFFFFFFFF
-    for x, y, k in (("c", "b", 14), ("a", "c", 11), ("b", "a", 25), ("c", "b", 16),
-                    ("a", "c", 4), ("b", "a", 14), ("c", "b", 24)):
-        v = {"a": a, "b": b, "c": c}
-        v[x] = ((v[x] ^ v[y]) - _rot(v[y], k)) & 0xFFFFFFFF
-        a, b, c = v["a"], v["b"], v["c"]
-    return c
+        h = (h * 37 + (byte - 256 if byte >= 128 else byte)) & 0xFFFFFFFF   # char is signed
+    return int(hash_uint2(np.array([h], np.uint32), np.array([0], np.uint32))[0])
 
 
 class Unsupported(Exception):
@@ -261,6 +250,15 @@ def _gradient(b, node):
         "vector": b.default_coords(node, "generated")}, {"Color": "color", "Fac": "fac"}
 
 
+def _noise(b, node):
+    if node.noise_dimensions != "3D":
+        raise Unsupported(f"{node.noise_dimensions} noise")
+    return "noise", {"noise_type": _enum(node.noise_type), "normalize": bool(node.normalize)}, {
+        "vector": b.default_coords(node, "generated"), "scale": "Scale", "detail": "Detail",
+        "roughness": "Roughness", "lacunarity": "Lacunarity", "offset": "Offset",
+        "gain": "Gain", "distortion": "Distortion"}, {"Fac": "fac", "Color": "color"}
+
+
 def _image_props(b, node) -> dict:
     from .materials import image_pixels
     img = node.image
@@ -339,7 +337,8 @@ TRANSLATORS = {
     "CLAMP": _clamp, "MIX": _mix, "MIX_RGB": _mix_rgb, "VALTORGB": _color_ramp,
     "INVERT": _invert, "GAMMA": _gamma, "BRIGHTCONTRAST": _bright_contrast,
     "RGBTOBW": _rgb_to_bw, "TEX_CHECKER": _checker, "TEX_GRADIENT": _gradient,
-    "TEX_IMAGE": _image, "TEX_ENVIRONMENT": _environment, "EMISSION": _emission,
+    "TEX_IMAGE": _image, "TEX_ENVIRONMENT": _environment, "TEX_NOISE": _noise,
+    "EMISSION": _emission,
     "BACKGROUND": _background, "BSDF_DIFFUSE": _diffuse, "BSDF_PRINCIPLED": _principled,
     "MIX_SHADER": _mix_shader, "ADD_SHADER": _add_shader,
 }

@@ -48,6 +48,8 @@ BLEND_MODES = ("mix", "darken", "multiply", "burn", "lighten", "screen", "dodge"
                "overlay", "soft_light", "linear_light", "difference", "exclusion", "subtract",
                "divide")
 EXTENSIONS = ("repeat", "extend", "clip", "mirror")
+NOISE_TYPES = ("fbm", "multifractal", "hybrid_multifractal", "ridged_multifractal",
+               "hetero_terrain")
 INTERPOLATIONS = ("closest", "linear")
 
 
@@ -159,6 +161,11 @@ NODE_TYPES: dict[str, NodeType] = {
                 extension=Prop("enum", "repeat", EXTENSIONS),
                 normal_matrix=Prop("matrix3", IDENTITY3), **_IMAGE_PROPS),
     "environment": _t([("vector", (VECTOR, _V0))], [("color", COLOR)], **_IMAGE_PROPS),
+    "noise": _t([("vector", (VECTOR, _V0)), ("scale", (FLOAT, 5.0)), ("detail", (FLOAT, 2.0)),
+                 ("roughness", (FLOAT, 0.5)), ("lacunarity", (FLOAT, 2.0)),
+                 ("offset", (FLOAT, 0.0)), ("gain", (FLOAT, 1.0)),
+                 ("distortion", (FLOAT, 0.0))], [("fac", FLOAT), ("color", COLOR)],
+                noise_type=Prop("enum", "fbm", NOISE_TYPES), normalize=Prop("bool", True)),
     # -- shaders
     "emission": _t([("color", (COLOR, _V1)), ("strength", (FLOAT, 1.0))],
                    [("emission", SHADER)]),

@@ -526,6 +526,155 @@ def equirectangular(d) -> tuple[np.ndarray, np.ndarray]:
     return u, v
 
 
+# --------------------------------------------------------------------------- noise
+def _rot32(x, k: int):
+    return (x << np.uint32(k)) | (x >> np.uint32(32 - k))
+
+
+def _lookup3(a, b, c):
+    """Bob Jenkins' lookup3 final mix of three uint32 arrays; returns c."""
+    for x, y, k in (("c", "b", 14), ("a", "c", 11), ("b", "a", 25), ("c", "b", 16),
+                    ("a", "c", 4), ("b", "a", 14), ("c", "b", 24)):
+        v = {"a": a, "b": b, "c": c}
+        v[x] = (v[x] ^ v[y]) - _rot32(v[y], k)
+        a, b, c = v["a"], v["b"], v["c"]
+    return c
+
+
+def hash_uint2(kx, ky):
+    """Cycles' hash_uint2 of uint32 arrays (lookup3 with two words)."""
+    init = np.uint32((0xDEADBEEF + (2 << 2) + 13) & 0xFFFFFFFF)
+    kx, ky = np.asarray(kx, np.uint32), np.asarray(ky, np.uint32)
+    return _lookup3(init + kx, init + ky, np.broadcast_to(init, np.broadcast(kx, ky).shape))
+
+
+def _hash_uint3(kx, ky, kz):
+    init = np.uint32((0xDEADBEEF + (3 << 2) + 13) & 0xFFFFFFFF)
+    return _lookup3(init + kx, init + ky, init + kz)
+
+
+def _float3_offset(seed: float) -> np.ndarray:
+    """Cycles' random_float3_offset: 100 + 100 * hash((seed, i)) / (2^32 - 1) per axis, in
+    float32 as Cycles computes it (the noise texture's seeds for its colour and distortion)."""
+    bits = lambda x: np.float32(x).view(np.uint32)       # noqa: E731
+    h = hash_uint2(np.full(3, bits(seed)), np.array([bits(i) for i in (0.0, 1.0, 2.0)]))
+    unit = h.astype(np.float32) / np.float32(0xFFFFFFFF)
+    return (np.float32(100.0) + unit * np.float32(100.0)).astype(np.float64)
+
+
+NOISE_REPEAT = 100000.0     # Cycles' Perlin noise repeats every 1e5 on each axis
+NOISE_SCALE3 = 0.9820       # Cycles' noise_scale3: 3D Perlin noise remapped to about [-1, 1]
+
+
+def _snoise3(p) -> np.ndarray:
+    """Cycles' snoise_3d: signed 3D Perlin noise (lattice gradients from lookup3 hashes,
+    quintic fade) of points p (..., 3)."""
+    p = np.fmod(p, NOISE_REPEAT)
+    cell = np.floor(p)
+    f = p - cell
+    ijk = (cell.astype(np.int64) & 0xFFFFFFFF).astype(np.uint32)
+    u = f * f * f * (f * (f * 6.0 - 15.0) + 10.0)
+    corner = {}
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                h = _hash_uint3(ijk[..., 0] + np.uint32(dx), ijk[..., 1] + np.uint32(dy),
+                                ijk[..., 2] + np.uint32(dz)) & np.uint32(15)
+                x, y, z = f[..., 0] - dx, f[..., 1] - dy, f[..., 2] - dz
+                a = np.where(h < 8, x, y)
+                b = np.where(h < 4, y, np.where((h == 12) | (h == 14), x, z))
+                corner[dx, dy, dz] = np.where(h & 1, -a, a) + np.where(h & 2, -b, b)
+    lerp = lambda a, b, t: (1.0 - t) * a + t * b       # noqa: E731
+    ux, uy, uz = u[..., 0], u[..., 1], u[..., 2]
+    yz = {(dy, dz): lerp(corner[0, dy, dz], corner[1, dy, dz], ux) for dy in (0, 1)
+          for dz in (0, 1)}
+    z0, z1 = lerp(yz[0, 0], yz[1, 0], uy), lerp(yz[0, 1], yz[1, 1], uy)
+    return NOISE_SCALE3 * lerp(z0, z1, uz)
+
+
+def _fractal(kind: str, p, detail, rough, lac, offset, gain, normalize: bool) -> np.ndarray:
+    """Cycles' fractal noise (kernel/svm/fractal_noise.h) of points p (N, 3); the octave
+    parameters may vary per point (a point stops at its own detail)."""
+    n = np.floor(detail).astype(np.int64)
+    rmd = detail - np.floor(detail)
+    top = int(np.max(n)) if np.size(n) else 0
+    one = np.ones(p.shape[:-1])
+    if kind == "fbm":
+        scale, amp, maxamp, total = one, one, 0.0 * one, 0.0 * one
+        for i in range(top + 1):
+            on = i <= n
+            t = _snoise3(_f(scale) * p)
+            total = np.where(on, total + t * amp, total)
+            maxamp = np.where(on, maxamp + amp, maxamp)
+            amp, scale = np.where(on, amp * rough, amp), np.where(on, scale * lac, scale)
+        total2 = total + _snoise3(_f(scale) * p) * amp
+        if normalize:
+            a, b = 0.5 * total / maxamp + 0.5, 0.5 * total2 / (maxamp + amp) + 0.5
+        else:
+            a, b = total, total2
+        return np.where(rmd != 0, a + rmd * (b - a), a)
+    if kind == "multifractal":
+        value, pwr, q = one, one, p
+        for i in range(top + 1):
+            on = i <= n
+            value = np.where(on, value * (pwr * _snoise3(q) + 1.0), value)
+            pwr, q = np.where(on, pwr * rough, pwr), np.where(_f(on), q * _f(lac), q)
+        return np.where(rmd != 0, value * (rmd * pwr * _snoise3(q) + 1.0), value)
+    if kind == "hetero_terrain":
+        pwr, value, q = rough * one, offset + _snoise3(p), p * _f(lac)
+        for i in range(1, top + 1):
+            on = i <= n
+            value = np.where(on, value + (_snoise3(q) + offset) * pwr * value, value)
+            pwr, q = np.where(on, pwr * rough, pwr), np.where(_f(on), q * _f(lac), q)
+        return np.where(rmd != 0, value + rmd * (_snoise3(q) + offset) * pwr * value, value)
+    if kind == "hybrid_multifractal":
+        pwr, value, weight, q, alive = one, 0.0 * one, one, p, np.ones(p.shape[:-1], bool)
+        for i in range(top + 1):
+            alive = alive & (weight > 0.001) & (i <= n)
+            w = np.minimum(weight, 1.0)
+            signal = (_snoise3(q) + offset) * pwr
+            value = np.where(alive, value + w * signal, value)
+            weight = np.where(alive, w * gain * signal, weight)
+            pwr, q = np.where(alive, pwr * rough, pwr), np.where(_f(alive), q * _f(lac), q)
+        last = (rmd != 0) & (weight > 0.001)
+        signal = (_snoise3(q) + offset) * pwr
+        return np.where(last, value + rmd * np.minimum(weight, 1.0) * signal, value)
+    # ridged multifractal (no fractional octave)
+    signal = offset - np.abs(_snoise3(p))
+    signal = signal * signal
+    value, pwr, q = signal, rough * one, p
+    for i in range(1, top + 1):
+        on = i <= n
+        q = np.where(_f(on), q * _f(lac), q)
+        weight = _saturate(signal * gain)
+        s = offset - np.abs(_snoise3(q))
+        s = s * s * weight
+        value, signal = np.where(on, value + s * pwr, value), np.where(on, s, signal)
+        pwr = np.where(on, pwr * rough, pwr)
+    return value
+
+
+def _noise(node, inp, n: int, want) -> dict:
+    """Cycles' 3D Noise Texture: fractal Perlin noise of vector * scale, optionally distorted;
+    Color is the value and two noises at offset points."""
+    pr = node.props
+    p = np.broadcast_to(np.asarray(inp["vector"], float), (n, 3)) * _f(inp["scale"])
+    per_point = lambda k: np.broadcast_to(np.asarray(inp[k], float), (n,))   # noqa: E731
+    detail = np.clip(per_point("detail"), 0.0, 15.0)
+    args = (detail, np.maximum(per_point("roughness"), 0.0), per_point("lacunarity"),
+            per_point("offset"), per_point("gain"), pr["normalize"])
+    dist = per_point("distortion")
+    if np.any(dist != 0):
+        p = p + np.stack([_snoise3(p + _float3_offset(float(k))) for k in range(3)], -1) * \
+            _f(dist)
+    value = _fractal(pr["noise_type"], p, *args)
+    out = {"fac": value}
+    if "color" in want:
+        out["color"] = np.stack([value] + [_fractal(pr["noise_type"], p + _float3_offset(s),
+                                                    *args) for s in (3.0, 4.0)], -1)
+    return out
+
+
 # --------------------------------------------------------------------------- nodes
 def _mapping(kind: str, v, loc, rot, scale):
     """Cycles' svm_mapping: rotation is Euler XYZ (R = Rz Ry Rx), radians."""
@@ -545,8 +694,8 @@ def _mapping(kind: str, v, loc, rot, scale):
     return _safe_normalize(rot_v(r, _safe_divide(v, scale)))
 
 
-def _run(node, inp: dict, pts: ShadingPoints) -> dict:
-    """Outputs of one node from its (converted) input values."""
+def _run(node, inp: dict, pts: ShadingPoints, want: set) -> dict:
+    """Outputs of one node from its (converted) input values (at least those in ``want``)."""
     t, pr = node.type, node.props
     if t == "tex_coord":
         n, wi = pts.normal, pts.incoming
@@ -626,6 +775,8 @@ def _run(node, inp: dict, pts: ShadingPoints) -> dict:
         return {"color": _f(f) * np.ones(3), "fac": f}
     if t == "image":
         return {"color": _image(node, inp["vector"], pts)}
+    if t == "noise":
+        return _noise(node, inp, len(pts), want)
     if t == "environment":
         u, v = equirectangular(_safe_normalize(np.broadcast_to(
             np.asarray(inp["vector"], float), (len(pts), 3))))
@@ -673,6 +824,8 @@ def evaluate(graph: ShaderGraph, pts: ShadingPoints) -> Closure:
     values: dict = {}
     need = _needed(graph)
     types = {n.name: n.type for n in graph.nodes}
+    used = {(lk.node, lk.output) for n in graph.nodes for lk in n.links.values()}
+    used.add((graph.output.node, graph.output.output))
     with np.errstate(all="ignore"):
         for node in graph.nodes:
             if node.name not in need:
@@ -687,7 +840,8 @@ def evaluate(graph: ShaderGraph, pts: ShadingPoints) -> Closure:
                 else:
                     v = node.inputs.get(key)
                     inp[key] = v if kind == SHADER else np.asarray(v, float)
-            for key, val in _run(node, inp, pts).items():
+            want = {o for o in spec.outputs if (node.name, o) in used}
+            for key, val in _run(node, inp, pts, want).items():
                 values[(node.name, key)] = val
         out = graph.output
         kind = NODE_TYPES[types[out.node]].outputs[out.output]

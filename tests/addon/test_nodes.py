@@ -512,6 +512,20 @@ def _image(interp="Linear", ext="REPEAT", projection="FLAT", srgb=False, linked=
     return build
 
 
+def _noise(kind, detail=2.0, normalize=True, distortion=0.0, output="Fac", scale=1.7):
+    """A Noise Texture; ``scale`` low enough for its finest octave to be smooth at 32 x 24."""
+    def build(g):
+        n = g.node("ShaderNodeTexNoise", {"Vector": g.vec(scale=(0.5, 0.4, 0.6)),
+                                          "Scale": scale, "Detail": detail, "Roughness": 0.6,
+                                          "Lacunarity": 2.3, "Offset": 0.4, "Gain": 1.3,
+                                          "Distortion": distortion},
+                   noise_type=kind, normalize=normalize)
+        if output == "Fac":
+            return g.rgb(g.out(n, "Fac"), g.abc()[2], g.out(n, "Fac"))
+        return g.out(n, "Color")
+    return build
+
+
 def _shader_mix(g):
     a, b, c = g.abc()
     emit = g.node("ShaderNodeEmission", {"Color": _fract_colour(g, (0.7, 0.5, 0.9)),
@@ -622,6 +636,13 @@ ROOM_CASES = {
     "image_srgb": _image(srgb=True),
     "image_uv": _image(linked=False),
     "shaders_mix_add_principled_diffuse": _shader_mix,
+    "noise_fbm": _noise("FBM"),
+    "noise_fbm_fractional_unnormalized": _noise("FBM", detail=3.4, normalize=False, scale=0.5),
+    "noise_multifractal": _noise("MULTIFRACTAL", detail=1.5),
+    "noise_hybrid_multifractal": _noise("HYBRID_MULTIFRACTAL", detail=2.5),
+    "noise_ridged_multifractal": _noise("RIDGED_MULTIFRACTAL"),
+    "noise_hetero_terrain": _noise("HETERO_TERRAIN", detail=2.7, scale=0.8),
+    "noise_distorted_color": _noise("FBM", distortion=0.8, output="Color"),
     "value_rgb_reroute_mute": _value_rgb_reroute_mute,
     "combined_issue_example": _issue_example,
     "combined_tiles": _combined_tiles,
@@ -712,6 +733,8 @@ WORLD_CASES = {
     "environment_linear": _world_environment("Linear", False),
     "environment_closest_mapped": _world_environment("Closest", True),
     "shaders_mix_add": _world_shaders,
+    "noise_sky": (lambda g: g.out(g.node("ShaderNodeTexNoise", {"Scale": 2.0, "Detail": 3.0},
+                                         noise_type="FBM"), "Color")),
     "combined_checker_sky": _world_checker_sky,
 }
 
@@ -739,8 +762,8 @@ def test_unsupported_nodes_give_the_socket_value_and_one_warning(bl, tmp_path):
     """A node core does not evaluate is replaced by the value of the socket it feeds, with one
     warning naming the node and the material; the rest of the graph is kept."""
     def room(g):
-        noise = g.node("ShaderNodeTexNoise", {"Vector": g.pos()})
-        math = g.node("ShaderNodeMath", {"Value": g.out(noise, "Fac"), "Value_001": 0.25},
+        wave = g.node("ShaderNodeTexWave", {"Vector": g.pos()})
+        math = g.node("ShaderNodeMath", {"Value": g.out(wave, "Fac"), "Value_001": 0.25},
                       operation="ADD")
         math.inputs[0].default_value = 0.5               # what replaces the noise
         path = g.node("ShaderNodeLightPath")
@@ -752,8 +775,8 @@ def test_unsupported_nodes_give_the_socket_value_and_one_warning(bl, tmp_path):
 
     mirror = build_scene(bl, tmp_path, room=room)
     scene, warn = _export(bl, mirror)
-    assert warn.count("'Noise Texture'") == 1 and warn.count("'Light Path'") == 1
-    assert "material 'room'" in warn and "(TEX_NOISE) is not supported" in warn
+    assert warn.count("'Wave Texture'") == 1 and warn.count("'Light Path'") == 1
+    assert "material 'room'" in warn and "(TEX_WAVE) is not supported" in warn
     img = render_exact(scene, width=W, height=H, workers=1).image
     assert np.allclose(img[~np.isclose(img, 0).all(axis=2)], [0.75, 0.2, 0.1], atol=1e-6)
     math = next(n for n in _graph_of(scene).nodes if n.type == "math")

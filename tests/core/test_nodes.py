@@ -589,3 +589,20 @@ def test_documented_graph_example_loads():
         assert t in rows, t
         for name in list(spec.inputs) + list(spec.outputs):
             assert f"`{name}`" in rows[t], (t, name)
+
+
+def test_noise_vanishes_on_the_lattice_and_is_smooth():
+    """Gradient noise is 0 at integer points, so one octave of normalized fBM is 0.5 there
+    and a ridged multifractal offset^2; between lattice points it is continuous."""
+    lattice = points([[0, 0, 0], [3, -2, 7], [-5, 1, 1], [12, 40, -3]])
+    coords = [GraphNode("g", "geometry")]
+    fac = lambda pts, **kw: one("noise", "fac", links={"vector": Link("g", "position")},  # noqa
+                                extra=coords, pts=pts, **kw)[:, 0]
+    ins = {"scale": 1.0, "detail": 0.0, "offset": 0.7}
+    np.testing.assert_allclose(fac(lattice, inputs=ins), 0.5, atol=EPS)
+    np.testing.assert_allclose(fac(lattice, inputs=ins, noise_type="ridged_multifractal"),
+                               0.7 ** 2, atol=EPS)
+    t = np.linspace(0.0, 1.0, 2001)
+    line = points(np.column_stack([t + 0.3, 0.6 * t - 0.2, 0.1 - 0.4 * t]))
+    v = fac(line, inputs={"scale": 1.3, "detail": 2.5})
+    assert np.abs(np.diff(v)).max() < 0.01 and 0.2 < v.min() < v.max() < 0.8
