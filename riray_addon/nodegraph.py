@@ -22,7 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.scene.graph import FLOAT, NODE_TYPES, SHADER, GraphError, GraphNode, Link, ShaderGraph
+from ..core.scene.graph import (FLOAT, LUMA, NODE_TYPES, SHADER, GraphError, GraphNode, Link,
+                                ShaderGraph)
 from ..core.trace.nodes import hash_uint2
 
 # Cycles' camera space looks down +Z (Blender's camera looks down -Z): world -> camera is
@@ -380,6 +381,8 @@ class Builder:
         return self.surface.matrix[:3, :3].T.copy()
 
     def coordinate_props(self, other_object) -> dict:
+        """A tex_coord node's matrices (core/scene/graph.py) for the shaded object or the world;
+        ``other_object``: the node's Object field."""
         surf = self.surface if self.surface is not None and self.surface.matrix is not None \
             else None
         if surf is not None:
@@ -416,12 +419,18 @@ class Builder:
         return Link(name, which)
 
     # -- values
-    def constant(self, socket, kind: str):
+    @staticmethod
+    def constant(socket, kind: str):
+        """A socket's own value as a core constant of ``kind`` (None for shaders), converted as
+        a link would be: colour -> float the luminance, vector -> float the mean."""
         dv = getattr(socket, "default_value", None)
         if dv is None:
             return None
         if kind == FLOAT:
-            return float(dv) if np.ndim(dv) == 0 else float(np.mean(tuple(dv)[:3]))
+            if np.ndim(dv) == 0:
+                return float(dv)
+            rgb = np.array(_rgb(dv))
+            return float(rgb @ np.asarray(LUMA) if socket.type == "RGBA" else rgb.mean())
         if np.ndim(dv) == 0:
             return (float(dv),) * 3
         return _rgb(dv)
@@ -435,12 +444,7 @@ class Builder:
         if node.type in ("VALUE", "RGB"):
             return self.constant(out, kind)
         link = self.translate(node, out)
-        if link is None:
-            val = self.constant(socket, kind)
-            if kind == SHADER:
-                return None
-            return val
-        return link
+        return link if link is not None else self.constant(socket, kind)
 
     def translate(self, node, out) -> Link | None:
         """The Link for output ``out`` of Blender ``node`` (translated once); None with a

@@ -552,9 +552,11 @@ def _value_rgb_reroute_mute(g):
     g.nt.links.new(g.out(rgb), rr.inputs[0])
     muted = g.node("ShaderNodeInvert", {"Color": g.out(rr)})
     muted.mute = True                         # passes its colour through
+    luma = g.node("ShaderNodeMath", {"Value": g.out(rgb), "Value_001": g.abc()[1]},
+                  operation="ADD")                      # a colour into a float: luminance
     return g.out(g.node("ShaderNodeMix", {"Factor_Float": g.abc()[0],
                                           "A_Color": g.out(muted),
-                                          "B_Color": g.rgb(g.out(val), g.abc()[1], 0.1)},
+                                          "B_Color": g.rgb(g.out(val), g.out(luma), 0.1)},
                         data_type="RGBA"), "Result_Color")
 
 
