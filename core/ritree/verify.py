@@ -35,8 +35,9 @@ def test_rays(tree, cells, cameras):
     dom = f.domain[face]
     pts = TEST_POINTS + EDGE_NUDGE * np.sign(0.5 - TEST_POINTS)
     size = np.exp2(-f.level[cells].astype(np.float64))[:, None]
-    x = dom[:, 0, None] + (dom[:, 1] - dom[:, 0])[:, None] * (f.ix[cells][:, None] + pts[:, 0]) * size
-    y = dom[:, 2, None] + (dom[:, 3] - dom[:, 2])[:, None] * (f.iy[cells][:, None] + pts[:, 1]) * size
+    span_x, span_y = (dom[:, 1] - dom[:, 0])[:, None], (dom[:, 3] - dom[:, 2])[:, None]
+    x = dom[:, 0, None] + span_x * (f.ix[cells][:, None] + pts[:, 0]) * size
+    y = dom[:, 2, None] + span_y * (f.iy[cells][:, None] + pts[:, 1]) * size
     axes = np.array([UV_AXES[k // 2] for k in range(6)])
     n = x.size
     p = np.zeros((n, 3))
@@ -86,7 +87,7 @@ def viewpoint_errors(tree, st, cameras):
     e[interp & ~both] = np.inf
     e[ans == NULL_S] = np.where(ex.null[ans == NULL_S], 0.0, np.inf)
     e[ans == MISS] = np.where(ex.hit[ans == MISS], np.inf, 0.0)
-    m = np.isfinite(e) | np.isinf(e)
+    m = ~np.isnan(e)
     acc = np.full(len(f.child), -np.inf)
     np.maximum.at(acc, cell[m], e[m])
     err[acc > -np.inf] = acc[acc > -np.inf]

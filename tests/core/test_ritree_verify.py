@@ -118,8 +118,9 @@ def test_leaf_error_is_its_midpoint_error(sphere):
     ok = ex.hit & ~ex.null & np.all(tree.sample_class(ids) == ex.cls[:, None], axis=1) \
         & ~np.any(np.asarray(s.null)[ids], axis=1)
     assert ok.sum() > 100
-    uc = dom[:, 0, None] + (dom[:, 1] - dom[:, 0])[:, None] * (f.ix[leaves][:, None] + [0, 1, 0, 1]) * size[:, None]
-    vc = dom[:, 2, None] + (dom[:, 3] - dom[:, 2])[:, None] * (f.iy[leaves][:, None] + [0, 0, 1, 1]) * size[:, None]
+    span_u, span_v = (dom[:, 1] - dom[:, 0])[:, None], (dom[:, 3] - dom[:, 2])[:, None]
+    uc = dom[:, 0, None] + span_u * (f.ix[leaves][:, None] + [0, 1, 0, 1]) * size[:, None]
+    vc = dom[:, 2, None] + span_v * (f.iy[leaves][:, None] + [0, 0, 1, 1]) * size[:, None]
     scale = np.sqrt(1 + uc ** 2 + vc ** 2)
     od = (s.out_d[ids] * scale[..., None]).sum(axis=1)
     od /= np.linalg.norm(od, axis=1, keepdims=True)
