@@ -40,6 +40,7 @@ class BakeJob:
         self.state = "new"
         self.fraction = 0.0
         self.message = ""
+        self.worker_eta = None          # (seconds left, at the worker's elapsed time) from core
         self.error = ""
         self.traceback = ""
         self.bytes = 0
@@ -82,9 +83,13 @@ class BakeJob:
 
     @property
     def eta(self) -> float | None:
-        """Seconds left, extrapolated from the progress so far (None before any progress)."""
+        """Seconds left: the bake's own estimate (weighted by its work) counted down since it
+        was written, else extrapolated from the fraction (None before any progress)."""
         if not self.running or self.fraction <= 0.01:
             return None
+        if self.worker_eta is not None:
+            left, at = self.worker_eta
+            return max(left - (self.elapsed - at), 0.0)
         return self.elapsed * (1.0 - self.fraction) / self.fraction
 
     def cancel(self) -> None:
@@ -163,6 +168,8 @@ class BakeJob:
         p = self._read_json("progress.json")
         if p:
             self.fraction = float(p.get("fraction", self.fraction))
+            if p.get("eta") is not None:
+                self.worker_eta = (float(p["eta"]), float(p.get("time", self.elapsed)))
             if not self.cancel_requested:
                 self.message = str(p.get("message", self.message))
 

@@ -191,10 +191,12 @@ def _redraw() -> None:
 
 # --------------------------------------------------------------------------- operators
 def _param_props():
-    """Operator options mirroring the object's bake parameters (see properties)."""
+    """Operator options mirroring the object's bake parameters (see properties), without the
+    object's update callbacks (the options are copied onto the object, see _apply_options)."""
     from .properties import RIRAY_PG_object as PG
     ann = PG.__annotations__
-    return {k: ann[k] for k in BAKE_KEYS + QUERY_KEYS}
+    return {k: ann[k].function(**{o: v for o, v in ann[k].keywords.items() if o != "update"})
+            for k in BAKE_KEYS + QUERY_KEYS}
 
 
 class RIRAY_OT_bake(bpy.types.Operator):
@@ -216,7 +218,8 @@ class RIRAY_OT_bake(bpy.types.Operator):
     _job = None
 
     def _apply_options(self, obj) -> None:
-        for k in BAKE_KEYS + QUERY_KEYS:
+        keys = ("quality",) + tuple(k for k in BAKE_KEYS + QUERY_KEYS if k != "quality")
+        for k in keys:                  # a preset first, then the parameters given with it
             if self.properties.is_property_set(k):
                 setattr(obj.riray, k, getattr(self, k))
         if self.cache_file:

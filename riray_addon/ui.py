@@ -35,6 +35,7 @@ def draw_bake_panel(layout, context) -> None:
     p = obj.riray
     col = layout.column(align=True)
     col.label(text="Tree", icon="OUTLINER_DATA_LIGHTPROBE")
+    col.prop(p, "quality")
     col.prop(p, "viewpoint_depth")
     col.prop(p, "direction_depth")
     col.prop(p, "min_direction_depth")

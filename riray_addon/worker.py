@@ -6,7 +6,8 @@ JOB_DIR holds (written by riray_addon.jobs in Blender):
                   "meta": {...}}
   scene.json     the core scene (object + cameras), riray JSON scene format
 The worker writes:
-  progress.json  {"fraction", "message", "time"} (atomically replaced, at most every 0.1 s)
+  progress.json  {"fraction", "message", "time", "eta"} (atomically replaced, at most every
+                 0.1 s; eta: core's estimate of the seconds left, when its message has one)
   result.json    {"status": "done" | "cancelled" | "failed", "error", "traceback", "bytes",
                   "stats"} - last thing written
 and stops early when the file JOB_DIR/cancel appears or its parent process goes away.
@@ -21,12 +22,14 @@ from __future__ import annotations
 import importlib
 import json
 import os
+import re
 import sys
 import time
 import traceback
 import types
 
 PKG = "_riray_worker_ext"
+ETA_RE = re.compile(r"\(eta (\d+(?:\.\d+)?) s\)")     # core bake's progress message
 PROGRESS_EVERY_S = 0.1
 CANCEL_POLL_S = 0.05
 
@@ -65,8 +68,10 @@ def run(job_dir: str) -> int:
         now = time.time()
         if now - state["last"] >= PROGRESS_EVERY_S or fraction >= 1.0:
             state["last"] = now
+            eta = ETA_RE.search(str(message))
             _write_json(progress_path, {"fraction": float(min(max(fraction, 0.0), 1.0)),
-                                        "message": str(message), "time": now - t0})
+                                        "message": str(message), "time": now - t0,
+                                        "eta": float(eta[1]) if eta else None})
 
     def cancel() -> bool:
         now = time.time()

@@ -13,8 +13,9 @@ Options:
   --object NAME         the specular object (default: scene.riray.target, set by build_blend)
   --camera NAME         render from this camera (default: the scene camera)
   --bake auto|always|never   bake when the tree is missing or stale (auto, the default),
-                        always, or never; tree options: --viewpoint-depth, --direction-depth,
-                        --tolerance (degrees)
+                        always, or never; tree options: --quality draft|default|paper (the
+                        add-on's presets), then --viewpoint-depth, --direction-depth,
+                        --tolerance (degrees) override the preset's values
   --save                save the .blend after baking (records the bake in the file)
   --zip PATH            extension zip to install when the add-on is not enabled (default:
                         dist/riray-*.zip, built on the fly from this checkout if missing)
@@ -74,6 +75,7 @@ def parse(argv):
     ap.add_argument("--object", default="")
     ap.add_argument("--camera", default="", help="camera object to render from")
     ap.add_argument("--bake", default="auto", choices=["auto", "always", "never"])
+    ap.add_argument("--quality", default="", choices=["draft", "default", "paper"])
     ap.add_argument("--viewpoint-depth", type=int, default=0)
     ap.add_argument("--direction-depth", type=int, default=0)
     ap.add_argument("--tolerance", type=float, default=0.0)
@@ -185,6 +187,8 @@ def run(args) -> int:
     status = cache.tree_status(obj, bpy.context.evaluated_depsgraph_get(), memo=False)
     print(f"riray: {obj.name}: {status['message']}")
     if args.bake == "always" or (args.bake == "auto" and status["state"] != "fresh"):
+        if args.quality:
+            obj.riray.quality = args.quality.upper()
         for key, value in opts.items():
             setattr(obj.riray, key, value)
         try:

@@ -44,10 +44,10 @@ class BakeCancelled(Exception):
 class _Tracer:
     """Traces batches of (viewpoint, cube face, u, v) sample rays with the exact f."""
 
-    def __init__(self, st, baker, workers, report, cancel):
+    def __init__(self, st, baker, workers, progress, cancel):
         self.st, self.baker, self.workers = st, baker, workers
-        self.report, self.cancel = report, cancel
-        self.rays = 0
+        self.progress, self.cancel = progress, cancel
+        self.kind, self.rays = "level", 0
 
     def __call__(self, vp, face, u, v) -> Samples:
         o = self.baker.vp_pos[vp]
@@ -59,9 +59,11 @@ class _Tracer:
         def prog(frac):
             if self.cancel is not None and self.cancel():
                 raise BakeCancelled("bake cancelled")
-            self.report(frac)
+            self.progress.tracing(frac)
 
+        self.progress.begin(self.kind, len(o))
         parts = map_chunks(work, len(o), TRACE_CHUNK, self.workers, prog) if len(o) else []
+        self.progress.end()
         self.rays += len(o)
         out = Samples.empty()
         for p in parts:
@@ -90,21 +92,122 @@ class _SampleIndex:
         self.keys, self.ids = k[order], i[order]
 
 
-def _progress_reporter(progress, stages):
-    """Map (stage, fraction within stage) to an overall fraction with an ETA message."""
-    t0 = time.perf_counter()
-    last = [0.0]
+class _Progress:
+    """The bake's progress weighted by work: seconds spent / (seconds spent + seconds still
+    expected), reported as ``progress(fraction, "label: NN% (eta S s)")``; the fraction never
+    goes back (it holds while the estimate grows), S is the current estimate.
 
-    def report(stage, frac, label):
-        if progress is None:
+    Work is traced rays of two kinds, "level" (direction-tree corners and midpoints) and
+    "extra" (the extra samples' binary search), at the seconds per ray measured for each kind
+    (times the bake's measured overhead outside tracing). What is still expected is
+    re-estimated as the bake goes: the deeper direction levels of a pass grow as the last level
+    did; the extra samples are known exactly from their first step (``steps`` equal traces),
+    before that as many per level ray as in the last pass; a pass costs at least the highest
+    seconds per direction tree of the passes before (with what ran between passes); every
+    refinement pass left costs as much as the current one."""
+
+    GROWTH0 = 2.0           # cells per cell from one direction level to the next, first guess
+    RAYS_PER_CELL0 = 2.0    # rays traced per tested cell (midpoint, new corners), first guess
+    EXTRA_PER_LEVEL0 = 1.0  # extra-sample rays per level ray, first guess
+    EXTRA_COST0 = 2.0       # an extra-sample ray's cost in level rays until one was timed
+
+    def __init__(self, progress, passes: int, levels: int, steps: int):
+        self.cb, self.passes, self.M, self.steps = progress, passes, levels, steps
+        self.t0 = time.perf_counter()
+        self.last, self.label, self.passes_done = 0.0, "starting", 0
+        self.tree_s = None                  # seconds per direction tree, dearest pass so far
+        self.extra_per_level = self.EXTRA_PER_LEVEL0
+        self.rays = {"level": 0, "extra": 0}          # rays traced (whole bake) ...
+        self.secs = {"level": 0.0, "extra": 0.0}      # ... and the seconds they took
+        self.call = None                              # (kind, rays, start) of the trace running
+        self.pass_t0, self.trees = self.t0, 0
+        self.start_pass(0)
+
+    def start_pass(self, trees: int):
+        """A pass that bakes ``trees`` new direction trees begins (the last pass's cost per
+        tree, with what ran between the passes, is measured)."""
+        now = time.perf_counter()
+        if self.trees:
+            self.tree_s = max(self.tree_s or 0.0, (now - self.pass_t0) / self.trees)
+        self.pass_t0, self.trees, self.open = now, trees, True
+        self.done = {"level": 0, "extra": 0}          # traced in this pass
+        self.plan = {"level": 0.0, "extra": None}     # expected in this pass
+        self.cells = self.level_start = 0
+
+    def level(self, level: int, cells: int):
+        """Direction level ``level`` of this pass is about to test ``cells`` cells (the deepest
+        level, M, only traces their midpoints)."""
+        per_cell, growth = self.RAYS_PER_CELL0, self.GROWTH0
+        if self.cells:
+            per_cell = (self.done["level"] - self.level_start) / self.cells
+            growth = min(cells / self.cells, 4.0)
+        ahead = [cells * growth ** j for j in range(self.M + 1 - level)]
+        self.plan["level"] = self.done["level"] + per_cell * sum(ahead[:-1]) + ahead[-1]
+        self.cells, self.level_start = cells, self.done["level"]
+        self.emit(f"direction level {level}")
+
+    def begin(self, kind: str, rays: int):
+        if kind == "extra" and self.plan["extra"] is None:
+            self.plan["level"] = self.done["level"]   # the levels are over: exact
+            self.plan["extra"] = self.done["extra"] + rays * self.steps
+        self.call = (kind, rays, time.perf_counter())
+
+    def tracing(self, frac: float):
+        self.emit(partial=frac)
+
+    def end(self):
+        kind, rays, t = self.call
+        self.rays[kind] += rays
+        self.secs[kind] += time.perf_counter() - t
+        self.done[kind] += rays
+        self.call = None
+
+    def end_pass(self):
+        if self.done["level"]:
+            self.extra_per_level = self.done["extra"] / self.done["level"]
+        self.passes_done, self.open = self.passes_done + 1, False
+
+    def remaining_s(self, partial: float = 0.0) -> float | None:
+        """Seconds still expected (None before any ray was timed)."""
+        if not self.rays["level"] or not self.secs["level"]:
+            return None
+        cost = {"level": self.secs["level"] / self.rays["level"]}
+        cost["extra"] = (self.secs["extra"] / self.rays["extra"] if self.rays["extra"]
+                         else self.EXTRA_COST0 * cost["level"])
+        now = time.perf_counter()
+        tracing = self.secs["level"] + self.secs["extra"] + (
+            now - self.call[2] if self.call is not None else 0.0)
+        overhead = (now - self.t0) / max(tracing, 1e-9)
+        plan = dict(self.plan)
+        if plan["extra"] is None:
+            plan["extra"] = self.extra_per_level * plan["level"]
+        left = 0.0
+        for kind in ("level", "extra"):
+            done = self.done[kind]
+            if self.call is not None and self.call[0] == kind:
+                done += partial * self.call[1]
+            left += max(plan[kind] - done, 0.0) * cost[kind]
+        left *= max(overhead, 1.0)
+        in_pass = now - self.pass_t0
+        if self.open and self.tree_s is not None:   # at least the dearest pass's cost per tree
+            left = max(left, self.tree_s * self.trees - in_pass)
+        future = max(self.passes - self.passes_done - self.open, 0)
+        return left + future * (in_pass + left)
+
+    def emit(self, label: str | None = None, partial: float = 0.0, done: bool = False):
+        self.label = label or self.label
+        if self.cb is None:
             return
-        # several traces share a stage: never let the bar go back
-        total = min(max((stage + min(max(frac, 0.0), 1.0)) / stages, last[0]), 1.0)
-        last[0] = total
-        el = time.perf_counter() - t0
-        eta = el / total - el if total > 0 else float("nan")
-        progress(total, f"{label}: {100 * total:.0f}% (eta {eta:.0f} s)")
-    return report
+        el = time.perf_counter() - self.t0
+        left = 0.0 if done else self.remaining_s(partial)
+        if left is None:
+            return
+        frac = min(max(el / (el + left) if el + left > 0 else 1.0, self.last), 1.0)
+        self.last = frac
+        where = self.label
+        if self.passes > 1 and not done:
+            where += f" (pass {min(self.passes_done + 1, self.passes)} of up to {self.passes})"
+        self.cb(frac, f"{where}: {100 * frac:.0f}% (eta {left:.0f} s)")
 
 
 def bake(st, params: BakeParams | None = None, region: Region | None = None, progress=None,
@@ -119,8 +222,8 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
     params = (params or BakeParams()).validate()
     t0, c0 = time.perf_counter(), _cpu_seconds()
     refine = params.viewpoint_refine if region is not None and region.rays is not None else 0
-    stages = (params.direction_depth + 2) * (1 + refine)
-    baker = _Baker(st, params, _progress_reporter(progress, stages), cancel, workers)
+    prog = _Progress(progress, 1 + refine, params.direction_depth, params.search_steps)
+    baker = _Baker(st, params, prog, cancel, workers)
     baker.start(region)
     passes, measured = 0, False
     for _ in range(refine):
@@ -137,7 +240,7 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
                       "region": (region or Region()).describe(), "refine_passes": passes,
                       "bake_seconds": round(time.perf_counter() - t0, 3),
                       "bake_cpu_s": round(_cpu_seconds() - c0, 3)})
-    baker.report(stages, 1.0, "done")
+    prog.emit("done", done=True)
     return tree
 
 
@@ -150,9 +253,9 @@ def _cpu_seconds() -> float:
 class _Baker:
     """The bake's state: viewpoint forest, direction forest and samples, grown pass by pass."""
 
-    def __init__(self, st, params, report, cancel, workers):
+    def __init__(self, st, params, progress, cancel, workers):
         self.st, self.params, self.cancel = st, params, cancel
-        self._report, self.stage0 = report, 0
+        self.progress = progress
         lo, hi, diag = st.tracer.lo, st.tracer.hi, st.tracer.diag
         pad = params.pad * diag + 1e-12
         self.box_lo, self.box_hi, self.diag = lo - pad, hi + pad, diag
@@ -173,16 +276,13 @@ class _Baker:
         self.rect = np.zeros((0, 4))
         self.samples = Samples.empty()
         self.index = _SampleIndex()
-        self.tracer = _Tracer(st, self, workers, lambda f: None, cancel)
+        self.tracer = _Tracer(st, self, workers, progress, cancel)
         self.dir_err = np.zeros(0, np.float32)
         self.dir_flags = np.zeros(0, np.uint8)
         self.vp_err = self.vp_flags = None
         self.ex = {"ex_node": np.zeros(0, np.int64), "ex_kind": np.zeros(0, np.int8),
                    "ex_ids": np.zeros((0, 4), np.int64), "ex_pos": np.zeros((0, 4, 2), np.float32),
                    "ex_corner": np.zeros((0, 4), np.int64)}
-
-    def report(self, stage, frac, label):
-        self._report(self.stage0 + stage, frac, label)
 
     # ------------------------------------------------------------------ viewpoints
     def _viewpoints(self, leaves):
@@ -246,12 +346,12 @@ class _Baker:
         return (d[:, 0] + (d[:, 1] - d[:, 0]) * gxy[:, 0] / (Gd - 1),
                 d[:, 2] + (d[:, 3] - d[:, 2]) * gxy[:, 1] / (Gd - 1))
 
-    def _trace(self, tr, u, v, stage, label):
+    def _trace(self, tr, u, v, kind="level"):
         vp, cube = self._tree_vp_cube(tr)
-        self.tracer.report = lambda f: self.report(stage, f, label)
+        self.tracer.kind = kind
         return self.tracer(vp, cube, u, v)
 
-    def _ensure(self, tr, gxy, stage):
+    def _ensure(self, tr, gxy):
         """Sample ids for grid points (tree, gx, gy), tracing the ones not sampled yet."""
         Gd = self.Gd
         keys = tr * Gd * Gd + gxy[:, 1] * Gd + gxy[:, 0]
@@ -261,7 +361,7 @@ class _Baker:
             nk, first, inv2 = np.unique(keys[miss], return_index=True, return_inverse=True)
             t_new, g_new = tr[miss][first], gxy[miss][first]
             u, v = self.uv_of(t_new, g_new)
-            new = self.samples.extend(self._trace(t_new, u, v, stage, "tracing"))
+            new = self.samples.extend(self._trace(t_new, u, v))
             self.index.add(nk, new)
             ids[miss] = new[inv2.ravel()]
         return ids
@@ -276,27 +376,28 @@ class _Baker:
     def _bake_directions(self, trees):
         """Adaptive direction trees (paper 3.3) for ``trees``, all trees of a level at once."""
         p, M, Gd, dirf = self.params, self.M, self.Gd, self.dirf
+        self.progress.start_pass(len(trees))
         nodes = dirf.add_roots(trees)
         dirf.corner[nodes] = self._ensure(np.repeat(trees, 4),
-                                          np.tile(CORNERS * (Gd - 1), (len(trees), 1)),
-                                          0).reshape(-1, 4)
+                                          np.tile(CORNERS * (Gd - 1), (len(trees), 1))
+                                          ).reshape(-1, 4)
         tol_ang, tol_d = np.radians(p.tolerance_deg), p.tolerance_dist * self.diag
         # levels 0..M-1 split where the test fails; leaves at the maximum depth M are tested too
         # (their error recorded, UNVERIFIED where they would split), not split
         for level in range(M + 1):
-            self.report(min(level, M - 1), 0.0, f"direction level {level}")
             if len(nodes) == 0:
                 break
             tr = dirf.tree_of_nodes()[nodes]
             inside = self._overlaps_rect(nodes, tr)           # only the baked rectangle refines
             nodes, tr = nodes[inside], tr[inside]
+            self.progress.level(level, len(nodes))
             cc = dirf.corner_coords(nodes, M)
             mid = (cc[:, 0] + cc[:, 3]) // 2 if level < M else (cc[:, 0] + cc[:, 3]) / 2
             if level < p.min_direction_depth:
                 split = np.ones(len(nodes), bool)
             else:
                 u, v = self.uv_of(tr, mid)
-                ms = self._trace(tr, u, v, min(level, M - 1), f"direction level {level}")
+                ms = self._trace(tr, u, v)
                 scale = dirf.cube_scale(nodes, tr, np.broadcast_to(UNIT_CORNERS[:, 0], (len(tr), 4)),
                                         np.broadcast_to(UNIT_CORNERS[:, 1], (len(tr), 4)))
                 split, err, flags = _midpoint_test(self.samples, dirf.corner[nodes], scale, ms,
@@ -315,21 +416,21 @@ class _Baker:
             kids = dirf.split(sn)                                        # (n, 4)
             kc = dirf.corner_coords(kids.ravel(), M)                     # (4n, 4, 2)
             ktr = np.repeat(tr[split], 4)
-            dirf.corner[kids.ravel()] = self._ensure(np.repeat(ktr, 4), kc.reshape(-1, 2),
-                                                     level).reshape(-1, 4)
+            dirf.corner[kids.ravel()] = self._ensure(np.repeat(ktr, 4),
+                                                     kc.reshape(-1, 2)).reshape(-1, 4)
             nodes = kids.ravel()
         # extra samples (paper 4.3) for the new trees' leaves inside their rectangles
-        self.report(M, 0.0, "extra samples")
+        self.progress.label = "extra samples"
         tree_of = dirf.tree_of_nodes()
         leaves = np.flatnonzero((dirf.child < 0) & np.isin(tree_of, trees))
         leaves = leaves[self._overlaps_rect(leaves, tree_of[leaves])]
         ex = _extras(dirf, leaves, self.samples, self.class_of, self._trace_vpc, self.uv_of,
-                     tree_of, M, p.search_steps, lambda f: self.report(M, f, "extra samples"))
+                     tree_of, M, p.search_steps)
         for k in self.ex:
             self.ex[k] = np.concatenate([self.ex[k], ex[k]])
         order = np.argsort(self.ex["ex_node"])
         self.ex = {k: v[order] for k, v in self.ex.items()}
-        self.stage0 += M + 2
+        self.progress.end_pass()
 
     def _record(self, nodes, err, flags):
         """Store the measured error and flags of direction ``nodes`` (arrays grown to the
@@ -344,7 +445,7 @@ class _Baker:
         self.dir_flags[nodes] = flags
 
     def _trace_vpc(self, tr, u, v):
-        return self._trace(tr, u, v, self.M, "extra samples")
+        return self._trace(tr, u, v, "extra")
 
     # ------------------------------------------------------------------ passes
     def start(self, region):
@@ -523,7 +624,7 @@ def _slots_seeing(vp_pos, vface, lo, hi):
     return out
 
 
-def _extras(dirf, leaves, samples, class_of, trace, uv_of, tree_of, M, steps, report):
+def _extras(dirf, leaves, samples, class_of, trace, uv_of, tree_of, M, steps):
     """Extra samples of two-class leaves. Corner slots c0..c3 = (0,0), (1,0), (0,1), (1,1);
     edges are searched from a corner of one class towards its neighbour of the other class.
 
@@ -584,7 +685,6 @@ def _extras(dirf, leaves, samples, class_of, trace, uv_of, tree_of, M, steps, re
     # bracket ends: corner sample ids (>= 0) or probes, coded -1 - (index into probes)
     probes = Samples.empty()
     for step in range(steps):
-        report(step / max(steps, 1))
         f = 0.5 * (lo_f + hi_f)
         g = p0 + (p1 - p0) * f[..., None]                              # (E, 2, 2)
         u, v = uv_of(trr, g.reshape(-1, 2))

@@ -195,3 +195,44 @@ def test_cache_follows_the_file_and_the_object(bl, tmp_path):
     own = bl.cache.cache_path(dup)
     assert own != bl.cache.cache_path(obj) and own == str(tmp_path / "c.Ball_001.rit")
     assert _fresh(bl, dup) and _fresh(bl, obj)
+
+
+def test_quality_presets(bl, tmp_path):
+    """A new object bakes at the Default preset, for the scene cameras; choosing a preset
+    writes its parameters, editing one makes the quality Custom; the operator applies a preset
+    before the parameters given with it."""
+    bpy = bl.bpy
+    presets = bl.properties.QUALITY
+    obj, _ = _setup(bl, tmp_path)
+    p = obj.riray
+    assert p.quality == "DEFAULT" and p.bake_for_cameras
+    assert {k: getattr(p, k) for k in presets["DEFAULT"]} == presets["DEFAULT"]
+    cost = [presets[q]["viewpoint_depth"] + presets[q]["direction_depth"]
+            for q in ("DRAFT", "DEFAULT", "PAPER")]
+    assert cost == sorted(cost) and len(set(cost)) == 3
+    p.quality = "PAPER"
+    assert (p.viewpoint_depth, p.direction_depth, p.quality) == (5, 6, "PAPER")
+    p.tolerance_deg = 0.25
+    assert p.quality == "CUSTOM" and p.viewpoint_depth == 5
+    assert bpy.ops.riray.bake(object=obj.name, quality="DRAFT", direction_depth=2) == \
+        {"FINISHED"}
+    assert (p.viewpoint_depth, p.direction_depth, p.viewpoint_refine) == (3, 2, 1)
+    assert p.quality == "CUSTOM" and p.tolerance_deg == pytest.approx(1.0)
+    doc = bl.backend.read_header(bl.cache.cache_path(obj))
+    assert doc["meta"]["params"]["direction_depth"] == 2
+
+
+def test_eta_is_the_bakes_own_estimate(bl, tmp_path):
+    """The job's ETA is the worker's (core's work-weighted) estimate counted down, not the
+    elapsed time extrapolated from the fraction."""
+    import json
+    from types import SimpleNamespace
+    job = bl.jobs.BakeJob("x", str(tmp_path / "x.rit"))
+    job.job_dir, job.state, job.proc = str(tmp_path), "running", SimpleNamespace(poll=lambda: None)
+    job.started = time.time() - 10.0
+    (tmp_path / "progress.json").write_text(json.dumps(
+        {"fraction": 0.5, "message": "extra samples: 50% (eta 40 s)", "time": 8.0, "eta": 40.0}))
+    assert job.poll() == "running" and job.fraction == 0.5
+    assert job.eta == pytest.approx(38.0, abs=0.5)          # not 10 s from the fraction
+    msg = "extra samples (pass 2 of up to 3): 61% (eta 12 s)"
+    assert bl.worker.ETA_RE.search(msg)[1] == "12"

@@ -1,0 +1,63 @@
+"""The bake's progress is weighted by work: on a clock that advances with the rays traced (an
+extra-sample ray costing twice a direction-level ray, as measured on the sample scenes), the
+reported fraction follows the share of the work done and the ETA the work left, from the
+direction levels through the extra samples. (Counting stages, the bar sat still while the
+extra samples, most of the work, ran.)"""
+
+import types
+
+import numpy as np
+import pytest
+
+from riray.geometry.primitives import sphere
+from riray.render.exact import SceneTracer
+from riray.ritree import bake as bake_mod
+from riray.ritree.tree import BakeParams
+from riray.scene.model import ObjectMaterial, Patch, RenderSettings, Scene, SpecularObject
+
+EXTRA_COST = 2
+
+
+@pytest.fixture
+def work_clock(monkeypatch):
+    """bake's clock reads the work traced so far: 1 per level ray, EXTRA_COST per extra ray."""
+    clock = {"now": 0, "kind": "level"}
+    monkeypatch.setattr(bake_mod, "time",
+                        types.SimpleNamespace(perf_counter=lambda: float(clock["now"])))
+    monkeypatch.setattr(bake_mod, "TRACE_CHUNK", 256)
+    call = bake_mod._Tracer.__call__
+
+    def traced(self, *args):
+        clock["kind"] = getattr(self, "kind", "level")
+        return call(self, *args)
+    monkeypatch.setattr(bake_mod._Tracer, "__call__", traced)
+    return clock
+
+
+def test_progress_follows_the_work(work_clock):
+    ball = SpecularObject("ball", [Patch("s", 0, surface=sphere((0.0, 0.0, 0.0), 0.5))],
+                          ObjectMaterial(kind="glass", ior=1.5))
+    st = SceneTracer(Scene(object=ball, render=RenderSettings(max_events=8)))
+    f = st.object_function
+
+    def counted(o, d, tmax=None):
+        work_clock["now"] += len(o) * (EXTRA_COST if work_clock["kind"] == "extra" else 1)
+        return f(o, d, tmax)
+    st.object_function = counted
+    calls = []
+    bake_mod.bake(st, BakeParams(viewpoint_depth=1, direction_depth=4), workers=1,
+                  progress=lambda frac, msg: calls.append((work_clock["now"], frac, msg)))
+    total = work_clock["now"]
+    done, frac = np.array([c[0] for c in calls], float), np.array([c[1] for c in calls])
+    assert np.all(np.diff(frac) >= 0) and frac[-1] == pytest.approx(1.0)
+    extra = np.array(["extra samples" in c[2] for c in calls])
+    assert extra.any()
+    share = done / total
+    assert share[extra].min() < 0.5 < share[extra].max()       # the extras are most of it
+    late = share >= 0.2                     # the first levels cannot know what follows
+    assert np.abs(frac - share)[late].max() < 0.15, np.c_[share, frac][late][::50]
+    # once the extra samples run, their amount is known: the ETA is within 25 % of the work left
+    eta = done / np.maximum(frac, 1e-9) - done
+    left = total - done
+    known = extra & (share > share[extra].min()) & (share <= 0.9)
+    assert np.all(np.abs(eta - left)[known] < 0.25 * left[known])
