@@ -20,7 +20,7 @@ import math
 from pathlib import Path
 
 SWEEP_MARKERS = {"depth": "o", "tolerance": "s", "angle": "^", "distance": "v",
-                 "extrapolation": "D", "table": "*"}
+                 "extrapolation": "D", "max_error": "P", "path": "X", "table": "*"}
 
 
 def _plt():

@@ -95,6 +95,8 @@ class BenchConfig:
     angles: tuple = (None, 45.0, 20.0, 10.0, 5.0)
     distances: tuple = (None, 0.1, 0.05, 0.02)
     extrapolations: tuple = (None, 0.1, 0.25, 0.5)
+    max_errors: tuple = (8.0, 4.0, 2.0, 1.0)     # --max-error (no angle threshold)
+    path_max_errors: tuple = (4.0, 2.0)          # --max-error with --path-identity
     plots: bool = True
     images: bool = True
     keep_trees: bool = False
@@ -117,7 +119,8 @@ class BenchConfig:
                 self.bake_params(vp, dd, self.tolerance)
         for t in self.tolerances:
             self.bake_params(self.viewpoint_depth, self.direction_depth, t)
-        for a in (self.angle, *self.angles, *self.distances, *self.extrapolations):
+        for a in (self.angle, *self.angles, *self.distances, *self.extrapolations,
+                  *self.max_errors, *self.path_max_errors):
             if a is not None and not (math.isfinite(a) and a >= 0):
                 raise ValueError(f"thresholds: must be finite and >= 0 (got {a!r})")
         return self
@@ -138,7 +141,7 @@ QUICK = dict(scenes=("glass_sphere", "vase_mirror"), views=("close", "zoom"), si
              repeats=1, viewpoint_depth=3, direction_depth=4, sweep_scenes=("glass_sphere",),
              vp_depths=(2, 3), dir_depths=(3, 4), tolerances=(0.5, 2.0),
              angles=(None, 20.0, 5.0), distances=(None, 0.05), extrapolations=(None, 0.25),
-             quick=True)
+             max_errors=(4.0, 1.0), path_max_errors=(2.0,), quick=True)
 
 
 # --------------------------------------------------------------------------- measuring
@@ -332,7 +335,8 @@ def _n_steps(cfg):
     n = len(cfg.scenes) * len(cfg.views) * 2
     if cfg.sweeps:
         per = len(cfg.vp_depths) * len(cfg.dir_depths) * 2 + len(cfg.tolerances) * 2 \
-            + len(cfg.angles) + len(cfg.distances) + len(cfg.extrapolations)
+            + len(cfg.angles) + len(cfg.distances) + len(cfg.extrapolations) \
+            + len(cfg.max_errors) + len(cfg.path_max_errors)
         n += per * len(cfg.sweep_scenes)
     return n
 
@@ -420,7 +424,8 @@ def _sweep_scene(cfg, name, workers, tree_dir, log) -> list:
         x, e = _strip(r["x"]), _strip(r["exact"])
         rows.append({"scene": name, "view": cfg.sweep_view, "sweep": sweep, **_bake_cols(brec),
                      "policy": opt.policy, "angle": opt.angle_deg, "distance": opt.distance,
-                     "extrapolation": opt.extrapolation, **x,
+                     "extrapolation": opt.extrapolation, "max_error": opt.max_error_deg,
+                     "path_identity": opt.path_identity, **x,
                      "exact_object_cpu_s": e["object_cpu_s"], "exact_total_cpu_s": e["total_cpu_s"]})
         log(f"{name}/{cfg.sweep_view} {sweep} {key}: traced {x['traced_fraction']:.1%}, "
             f"err {_err3(x)} deg, PSNR {x['psnr_db']:.1f} dB")
@@ -462,6 +467,11 @@ def _sweep_scene(cfg, name, workers, tree_dir, log) -> list:
     for ex in cfg.extrapolations:
         record("extrapolation", tree, brec, QueryOptions(angle_deg=cfg.angle, extrapolation=ex),
                f"{ex}")
+    for t in cfg.max_errors:
+        record("max_error", tree, brec, QueryOptions(angle_deg=None, max_error_deg=t), f"{t}")
+    for t in cfg.path_max_errors:
+        record("path", tree, brec, QueryOptions(angle_deg=None, max_error_deg=t,
+                                                path_identity=True), f"{t}")
     _drop_tree(tree, brec, cfg)
     return rows
 
@@ -537,7 +547,8 @@ TABLE_CSV = ("scene", "view", "row", "label", "rays_traced", "object_rays", "tra
              "hit_disagreements", "viewpoint_depth", "direction_depth", "tolerance", "bake_s",
              "bake_cpu_s", "cache_bytes", "tree_samples")
 SWEEP_CSV = ("scene", "view", "sweep", "viewpoint_depth", "direction_depth", "tolerance",
-             "policy", "angle", "distance", "extrapolation", "bake_s", "bake_cpu_s",
+             "policy", "angle", "distance", "extrapolation", "max_error", "path_identity",
+             "bake_s", "bake_cpu_s",
              "cache_bytes", "tree_samples", "bake_rays", "rays_traced", "object_rays",
              "traced_fraction", "object_cpu_s", "total_cpu_s", "exact_object_cpu_s",
              "exact_total_cpu_s", "object_speedup", "total_speedup", "pairs", "newton_iters",
@@ -654,15 +665,16 @@ def sweeps_markdown(rows) -> str:
     lines = []
     for scene in dict.fromkeys(r["scene"] for r in rows):
         lines += [f"**{scene}** ({rows[0]['view']} view)", "",
-                  "| sweep | vp | dir | tol | angle | dist | extrap | bake s | cache MB | "
-                  "traced % | object-only s (exact) | total s (exact) | mean / p99 / max err deg "
-                  "| PSNR dB | max diff |",
-                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                  "| sweep | vp | dir | tol | angle | dist | extrap | max err | bake s | "
+                  "cache MB | traced % | object-only s (exact) | total s (exact) | mean / p99 / "
+                  "max err deg | PSNR dB | max diff |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for r in (r for r in rows if r["scene"] == scene):
             lines.append(
                 f"| {r['sweep']} | {r['viewpoint_depth']} | {r['direction_depth']} | "
                 f"{r['tolerance']:g} | {_fmt(r['angle'], '{:g}')} | {_fmt(r['distance'], '{:g}')} | "
-                f"{_fmt(r['extrapolation'], '{:g}')} | {r['bake_s']:.1f} | "
+                f"{_fmt(r['extrapolation'], '{:g}')} | {_fmt(r.get('max_error'), '{:g}')}"
+                f"{' path' if r.get('path_identity') else ''} | {r['bake_s']:.1f} | "
                 f"{r['cache_bytes'] / 1e6:.2f} | {100 * r['traced_fraction']:.1f} | "
                 f"{r['object_cpu_s']:.2f} ({r['exact_object_cpu_s']:.2f}) | "
                 f"{r['total_cpu_s']:.2f} ({r['exact_total_cpu_s']:.2f}) | "

@@ -92,6 +92,8 @@ def test_sweeps_consistent(bench):
     assert kinds.count("angle") == len(q.angles)
     assert kinds.count("distance") == len(q.distances)
     assert kinds.count("extrapolation") == len(q.extrapolations)
+    assert kinds.count("max_error") == len(q.max_errors)
+    assert kinds.count("path") == len(q.path_max_errors)
     for r in rows:
         assert float(r["bake_s"]) > 0 and int(r["cache_bytes"]) > 0
         assert 0.0 <= float(r["traced_fraction"]) <= 1.0
@@ -103,6 +105,12 @@ def test_sweeps_consistent(bench):
     # without any threshold fewer rays are traced than with the tightest angle threshold
     ang = {r["angle"]: int(r["rays_traced"]) for r in rows if r["sweep"] == "angle"}
     assert ang[""] <= min(v for k, v in ang.items() if k)
+    # a tighter --max-error never interpolates a worse ray, and traces at least as many
+    tol = sorted(((float(r["max_error"]), r) for r in rows if r["sweep"] == "max_error"),
+                 key=lambda x: -x[0])
+    for (_, a), (_, b) in zip(tol, tol[1:]):
+        assert float(b["angle_max_deg"] or 0) <= float(a["angle_max_deg"] or 0)
+        assert int(b["rays_traced"]) >= int(a["rays_traced"])
 
 
 def test_pareto_front():
