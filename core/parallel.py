@@ -49,14 +49,25 @@ def map_chunks(fn: Callable, n: int, chunk: int, workers: int | None = None,
                 progress((i + 1) / len(bounds))
         return out
     _TASK = fn
+    # Ctrl-C is the parent's alone: the workers are forked with SIGINT blocked (so a Ctrl-C
+    # during the fork cannot reach them) and ignore it; the parent terminates and joins them
+    # on any exit, so none outlives it.
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
-        # workers ignore Ctrl-C: the parent alone handles it (and terminates the pool)
-        with mp.get_context("fork").Pool(min(workers, len(bounds)), signal.signal,
-                                         (signal.SIGINT, signal.SIG_IGN)) as pool:
-            for i, r in enumerate(pool.imap(_run, bounds)):
-                out.append(r)
-                if progress:
-                    progress((i + 1) / len(bounds))
+        pool = mp.get_context("fork").Pool(min(workers, len(bounds)), signal.signal,
+                                           (signal.SIGINT, signal.SIG_IGN))
+    except BaseException:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        _TASK = None
+        raise
+    try:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        for i, r in enumerate(pool.imap(_run, bounds)):
+            out.append(r)
+            if progress:
+                progress((i + 1) / len(bounds))
     finally:
+        pool.terminate()
+        pool.join()
         _TASK = None
     return out

@@ -355,8 +355,13 @@ def test_ctrl_c_during_bake(files, tmp_path):
         seen += ch
     time.sleep(0.3)
     os.killpg(p.pid, signal.SIGINT)
-    err = (seen + p.stderr.read()).decode()
-    assert p.wait(timeout=60) == 130, err
+    try:                                 # stderr closes only when no worker is left holding it
+        rest = p.communicate(timeout=120)[1]
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        pytest.fail("a process of the interrupted bake was still running after 120 s")
+    err = (seen + rest).decode()
+    assert p.returncode == 130, err
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
     assert err.splitlines()[-1] == "riray bake: interrupted", err
     assert old.read_bytes() == b"the previous cache"
