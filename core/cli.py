@@ -242,7 +242,7 @@ def _load_rays(path):
     far = np.abs(rays[:, :3]) > MAX_COORD
     if far.any():
         i, j = (int(x) for x in np.argwhere(far)[0])
-        raise ValueError(f"{path}: row {i} column {j}: origin coordinate {rays[i, j]!r} is "
+        raise ValueError(f"{path}: row {i} column {j}: origin coordinate {float(rays[i, j])!r} is "
                          f"outside the supported range +-{MAX_COORD:g} m")
     d = rays[:, 3:]
     big = np.abs(d).max(axis=1)
