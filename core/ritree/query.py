@@ -555,10 +555,14 @@ class TreeQuery:
             items = SetItems.of(self.tree, tab, s_leaf, s_ids, s_trees)
             out = blend(items.corner_vals, sg, weights)
             od, nm = out[:, 3:6], out[:, 9:12]
+            lod, lnm = np.linalg.norm(od, axis=1), np.linalg.norm(nm, axis=1)
+            ok = (lod > MIN_BLEND_NORM) & (lnm > MIN_BLEND_NORM)      # opposed samples: traced
+            ans[rows[g[~ok]]] = TRACED
+            why[rows[g[~ok]]] = WHY_BLEND
+            g, sg, out, od, nm, lod, lnm = (a[ok] for a in (g, sg, out, od, nm, lod, lnm))
             ans[rows[g]] = FULL
-            self._fill(res, ans, rows[g], o, d, tmax, out[:, 0:3],
-                       od / np.linalg.norm(od, axis=1)[:, None], out[:, 6:9],
-                       nm / np.linalg.norm(nm, axis=1)[:, None], s_cls[sg, 0].astype(np.int64),
+            self._fill(res, ans, rows[g], o, d, tmax, out[:, 0:3], od / lod[:, None],
+                       out[:, 6:9], nm / lnm[:, None], s_cls[sg, 0].astype(np.int64),
                        tab.patch[s_ids[sg, 0]].astype(np.int64))
 
     # ------------------------------------------------------------------ results

@@ -68,7 +68,8 @@ Rules (policy "ri"; paper sections 4.1-4.3, 5.1-5.4), per ray:
 
 Policy "raytree": OUTSIDE / MISS as above; all 16 samples with the same ray-tree hash, the same
 class and none null -> bilinear at both levels (perspective-weighted) -> FULL, or MISS for the
-miss class; otherwise TRACED (raytree_mismatch).
+miss class, or TRACED (degenerate_blend) for a blended direction or normal shorter than
+MIN_BLEND_NORM; otherwise TRACED (raytree_mismatch).
 """
 
 from __future__ import annotations
@@ -544,6 +545,8 @@ def answer_raytree(data, cell, o, d, tmax):
             val[3:6] *= data.cube_scale(cell.leaves[k], cell.trees[k], *CORNERS[j])
             out += W[k] * wk[j] * val
     od, nm = out[3:6], out[9:12]
+    if not (np.linalg.norm(od) > MIN_BLEND_NORM and np.linalg.norm(nm) > MIN_BLEND_NORM):
+        return Answer(TRACED, WHY_BLEND)
     return finish(FULL, o, d, tmax, out[0:3], od / np.linalg.norm(od), out[6:9],
                   nm / np.linalg.norm(nm), c, {})
 

@@ -31,7 +31,8 @@ from riray.ritree.interp import angle_between
 from riray.ritree.locate import entry_points
 from riray.ritree.quadtree import Forest
 from riray.ritree.query import (EXTRAPOLATED_S, FULL, MISS, NULL_S, OUTSIDE, REDUCED, TRACED,
-                                WHY_RAYTREE, WHY_THRESHOLD, WHY_USABLE, QueryOptions, TreeQuery)
+                                WHY_BLEND, WHY_RAYTREE, WHY_THRESHOLD, WHY_USABLE, QueryOptions,
+                                TreeQuery)
 from riray.ritree.region import Region
 
 # Interpolation exactness on affine ray maps (mirror, slab) is checked without the pairwise
@@ -758,6 +759,30 @@ def test_raytree_policy_handmade(mirror):
     tree = handmade_tree(st, affine_values, null=np.eye(16, dtype=bool)[5])
     _, ans, _, _ = TreeQuery(tree, st, QueryOptions(policy="raytree"))(o, d)
     assert np.all(ans == TRACED)
+
+
+def test_opposed_samples_are_traced_not_blended(mirror):
+    """Corners whose output directions cancel (+d on one diagonal, -d on the other) blend to
+    sqrt(3) |u v| d: where that is shorter than MIN_BLEND_NORM (u = 0 here) both policies
+    trace the ray instead of normalizing a zero vector; elsewhere they interpolate it."""
+    st, _ = mirror
+
+    def values(x, y, u, v):
+        oo, od, pt, nm = affine_values(x, y, u, v)
+        return oo, od * np.sign(u * v)[:, None], pt, nm
+
+    tree = handmade_tree(st, values)
+    rng = np.random.default_rng(12)
+    n = 200
+    q = np.c_[rng.uniform(-0.9, 0.9, (n, 2)), np.full(n, 0.5)]
+    u = np.where(np.arange(n) % 2 == 0, 0.0, 0.5)
+    d = unit(np.c_[u, rng.uniform(0.2, 0.9, n), -np.ones(n)])
+    o = q - 0.3 * d
+    for policy in ("ri", "raytree"):
+        res, ans, why, _ = TreeQuery(tree, st, QueryOptions(policy=policy, angle_deg=None))(o, d)
+        check_answers(res, ans, why)
+        assert np.all(ans[u == 0] == TRACED) and np.all(why[u == 0] == WHY_BLEND), policy
+        assert np.all(ans[u != 0] == FULL), policy
 
 
 def sixteen_ids(tree, o, d):
