@@ -130,6 +130,21 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
     use_null_interp: BoolProperty(name="Interpolate null rays", default=True,
                                   description="A ray whose interpolants are all trapped "
                                               "(null) is answered null instead of traced")
+    use_max_error: BoolProperty(name="Max error", default=False,
+                                description="Interpolate a ray only where the errors the bake "
+                                            "measured in its four direction leaves and its "
+                                            "viewpoint cell are within the angle below, else "
+                                            "trace it (camera bakes: a tree baked without "
+                                            "cameras traces every ray)")
+    max_error_deg: FloatProperty(name="Max error", default=2.0, min=0.0, max=180.0,
+                                 precision=3,
+                                 description="Largest baked error of an interpolated ray "
+                                             "(degrees)")
+    use_path_identity: BoolProperty(name="Path identity", default=False,
+                                    description="Trace a ray whose usable samples follow "
+                                                "different paths (ray-tree hash), or whose "
+                                                "leaves or viewpoint cell the bake saw change "
+                                                "path")
     # ---- viewpoint selection
     bake_for_cameras: BoolProperty(name="Bake for scene cameras", default=True,
                                    description="Only bake the viewpoint cells the scene cameras "
@@ -230,7 +245,8 @@ BAKE_KEYS = ("viewpoint_depth", "viewpoint_refine", "direction_depth", "min_dire
              "tolerance_deg", "tolerance_dist", "search_steps", "quality", "bake_for_cameras",
              "use_frame_range")
 QUERY_KEYS = ("policy", "use_angle_threshold", "angle_deg", "use_distance_threshold", "distance",
-              "use_extrapolation", "extrapolation", "use_null_interp")
+              "use_extrapolation", "extrapolation", "use_null_interp", "use_max_error",
+              "max_error_deg", "use_path_identity")
 
 
 def query_options(obj) -> dict:
@@ -240,7 +256,9 @@ def query_options(obj) -> dict:
             "angle_deg": float(p.angle_deg) if p.use_angle_threshold else None,
             "distance": float(p.distance) if p.use_distance_threshold else None,
             "extrapolation": float(p.extrapolation) if p.use_extrapolation else None,
-            "null_interp": bool(p.use_null_interp)}
+            "null_interp": bool(p.use_null_interp),
+            "max_error_deg": float(p.max_error_deg) if p.use_max_error else None,
+            "path_identity": bool(p.use_path_identity)}
 
 
 def bake_params(obj) -> dict:

@@ -47,13 +47,14 @@ def draw_bake_panel(layout, context) -> None:
     col.label(text="Interpolation (render time)")
     col.prop(p, "policy", text="")
     for use, val in (("use_angle_threshold", "angle_deg"), ("use_distance_threshold", "distance"),
-                     ("use_extrapolation", "extrapolation")):
+                     ("use_extrapolation", "extrapolation"), ("use_max_error", "max_error_deg")):
         row = col.row(align=True)
         row.prop(p, use, text="")
         sub = row.row(align=True)
         sub.enabled = getattr(p, use)
         sub.prop(p, val, text=p.bl_rna.properties[use].name)
     col.prop(p, "use_null_interp")
+    col.prop(p, "use_path_identity")
     col = layout.column(align=True)
     col.prop(p, "bake_for_cameras")
     sub = col.row()

@@ -224,3 +224,39 @@ def test_still_through_baked_tree_matches_core(bl, tmp_path):
     assert 0.0 < st["traced_fraction"] < 0.9
     assert np.abs(got - ref.image).max() < 1e-5
     assert np.array_equal(last["traced"].reshape(H, W) > 0, ref.masks["traced"])
+
+
+def test_max_error_and_path_identity_trace_through_baked_tree(bl, tmp_path):
+    """The render-time tolerance (Max error) and Path identity reach core's query: with a
+    tolerance far below any error the bake measured nearly every object pixel is traced (the
+    Traced pass and LAST_RENDER agree); off, far fewer are; path identity only adds traced
+    rays; none of it needs a re-bake."""
+    bpy = bl.bpy
+    obj = build_scene(bl, tmp_path)
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "tree_tolerance.blend"))
+    assert bpy.ops.riray.bake(object=obj.name, viewpoint_depth=3, direction_depth=4,
+                              bake_for_cameras=True) == {"FINISHED"}
+    p = obj.riray
+    p.use_angle_threshold = False
+
+    def render():
+        assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+        last = bl.engine.LAST_RENDER
+        st = last["stats"]
+        assert st["mode"] == "tree" and st["object_pixels"] > 50
+        assert last["traced"].sum() == st["traced_pixels"]
+        return st["traced_fraction"]
+
+    assert bl.properties.query_options(obj)["max_error_deg"] is None
+    off = render()
+    p.use_path_identity = True
+    assert bl.properties.query_options(obj)["path_identity"] is True
+    path = render()
+    p.use_path_identity = False
+    p.use_max_error, p.max_error_deg = True, 1e-4
+    assert bl.properties.query_options(obj)["max_error_deg"] == pytest.approx(1e-4)
+    tight = render()
+    assert bl.cache.tree_status(obj, bpy.context.evaluated_depsgraph_get(),
+                                memo=False)["state"] == "fresh"       # no re-bake needed
+    assert off < 0.5 and off <= path            # here 0.11 / 0.11 / 1.0
+    assert tight >= 0.98
