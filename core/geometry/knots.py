@@ -42,19 +42,19 @@ def _check_knots(knots, degree: int, count: int, field: str, dname: str) -> None
     if np.any(steps < 0):
         i = int(np.argmax(steps < 0))
         raise GeometryError(f"{field}: knots decrease at index {i + 1} "
-                            f"({k[i]!r} -> {k[i + 1]!r})")
+                            f"({float(k[i])!r} -> {float(k[i + 1])!r})")
     values, mult = np.unique(k, return_counts=True)
     inner = mult[1:-1]
     if inner.size and inner.max() > degree:
         i = int(np.argmax(inner)) + 1
-        raise GeometryError(f"{field}: interior knot {values[i]!r} has multiplicity {mult[i]} "
+        raise GeometryError(f"{field}: interior knot {float(values[i])!r} has multiplicity {mult[i]} "
                             f"> {dname} {degree}")
     if mult.max() > degree + 1:
         i = int(np.argmax(mult))
-        raise GeometryError(f"{field}: end knot {values[i]!r} has multiplicity {mult[i]} "
+        raise GeometryError(f"{field}: end knot {float(values[i])!r} has multiplicity {mult[i]} "
                             f"> {dname} + 1 = {degree + 1}")
     if not k[count] > k[degree]:
-        raise GeometryError(f"{field}: zero-length domain [{k[degree]!r}, {k[count]!r}]")
+        raise GeometryError(f"{field}: zero-length domain [{float(k[degree])!r}, {float(k[count])!r}]")
 
 
 def check_surface(surf: NurbsSurface, name: str = "surface") -> None:
@@ -74,7 +74,7 @@ def check_surface(surf: NurbsSurface, name: str = "surface") -> None:
         raise GeometryError(f"{name}.weights: must have shape {(nu, nv)} like points, "
                             f"got {weights.shape}")
     if np.any(weights <= 0):
-        raise GeometryError(f"{name}.weights: must be > 0, minimum is {weights.min()!r}")
+        raise GeometryError(f"{name}.weights: must be > 0, minimum is {float(weights.min())!r}")
     for d in ("u", "v"):
         degree, count = getattr(surf, f"degree_{d}"), (nu if d == "u" else nv)
         if count < degree + 1:
@@ -136,7 +136,7 @@ def insert_knot(surf: NurbsSurface, direction: str, value: float, times: int = 1
     n = surf.points.shape[0 if along_u else 1]
     if not knots[p] <= value <= knots[n]:
         raise GeometryError(f"value: {value!r} outside the {direction} domain "
-                            f"[{knots[p]!r}, {knots[n]!r}]")
+                            f"[{float(knots[p])!r}, {float(knots[n])!r}]")
     mult = int(np.count_nonzero(knots == value))
     if times and mult + times > p:
         raise GeometryError(f"times: inserting {value!r} {times} more time(s) gives multiplicity "
