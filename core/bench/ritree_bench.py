@@ -305,7 +305,7 @@ def measure_configs(st, tree, cam, size, configs: dict, repeats, workers) -> dic
         images[k] = p["img_i"]
         images[k + "_traced"] = p["traced_mask"]
     rows["exact"]["object_speedup"] = rows["exact"]["total_speedup"] = 1.0
-    rows["exact"]["query_own_cpu_s"] = rows["exact"]["query_own_fraction"] = 0.0
+    rows["exact"]["query_own_cpu_s"] = rows["exact"]["query_own_fraction"] = None  # no query
     rows["_images"] = images
     return rows
 

@@ -71,7 +71,7 @@ def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
             col_r, s_r, hit_r, cand = render_pixels(st, oo, dd, fn)
             out[name] = s_r
             if name == "interp":
-                col, hit_i = col_r, hit_r
+                col, hit_i, cand_i = col_r, hit_r, cand
                 answers[cand] = box["ans"]
                 whys[cand] = box["why"]
             else:
@@ -80,7 +80,7 @@ def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
             ri, rx = box["res"], keep["res"]
             interp = (box["ans"] >= FULL) & (box["ans"] <= EXTRAPOLATED_S) & ri.hit & rx.hit \
                 & ~rx.null
-            err[cand[interp]] = np.degrees(angle_between(ri.out_dir[interp], rx.out_dir[interp]))
+            err[cand_i[interp]] = np.degrees(angle_between(ri.out_dir[interp], rx.out_dir[interp]))
             out["hit_disagree"] = int(np.sum(ri.hit != rx.hit))
             out["null_disagree"] = int(np.sum((box["ans"] == NULL_S) & ~rx.null))
         return col, col_x, answers, whys, err, out, hit_i
