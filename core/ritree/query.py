@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..trace.objectfn import ObjectRays, fresnel_dielectric, reflect
+from ..trace.patches import PatchHit
 from .extras import extra_weights
 from .interp import (BILINEAR, EXTRA, EXTRAPOLATED, FAIL, TRIANGLE, UNIT_CORNERS,
                      bilinear_weights, cell_weights, drop_outlier, far_pairs, may_have_far_pairs)
@@ -103,6 +104,39 @@ class StageClock:
             yield
         finally:
             self.cpu[name] = self.cpu.get(name, 0.0) + time.process_time() - t0
+
+
+class KnownHits:
+    """Exact first hits (against every patch, within the ray's tmax) the query found for some
+    of its N rays, so that nothing searches them again."""
+
+    def __init__(self, n: int):
+        self.pos = np.full(n, -1, np.int64)       # row of each ray in the hits, -1: none
+        self.pieces: list[PatchHit] = []
+
+    def add(self, rays, hit: PatchHit) -> None:
+        """Record the hits of rays ``rays`` (none recorded yet)."""
+        self.pos[rays] = self._count() + np.arange(len(rays))
+        self.pieces.append(hit)
+
+    def _count(self) -> int:
+        return sum(len(h.t) for h in self.pieces)
+
+    def _all(self) -> PatchHit:
+        if len(self.pieces) > 1:
+            self.pieces = [PatchHit(**{f: np.concatenate([getattr(h, f) for h in self.pieces])
+                                       for f in self.pieces[0].__dict__})]
+        return self.pieces[0]
+
+    def hit(self, rays) -> np.ndarray:
+        """Whether each of ``rays`` (all recorded) hits the object."""
+        return self._all().hit[self.pos[rays]]
+
+    def of(self, rays):
+        """(positions within ``rays`` that have a recorded hit, their PatchHit), or None."""
+        p = self.pos[rays]
+        k = np.flatnonzero(p >= 0)
+        return (k, self._all().take(p[k])) if len(k) else None
 
 
 # Stages whose time is exact tracing the query calls (the rest is the query's own work).
@@ -212,15 +246,16 @@ class TreeQuery:
             loc, outside = locate(self.tree, o, d, tmax)
         ans[outside] = OUTSIDE
         n_exact = 0
+        known = KnownHits(n)
         if len(loc):
             if self.opt.policy == "raytree":
                 self._raytree(o, d, tmax, loc, res, ans, why, clock)
             else:
-                n_exact = self._ri(o, d, tmax, loc, res, ans, why, clock)
+                n_exact = self._ri(o, d, tmax, loc, res, ans, why, clock, known)
         with clock("trace"):
             tr = np.flatnonzero((ans == TRACED) | (ans == OUTSIDE))
             if len(tr):
-                ex = self.st.object_function(o[tr], d[tr], tmax[tr])
+                ex = self.st.object_function(o[tr], d[tr], tmax[tr], first=known.of(tr))
                 for k, val in ex.__dict__.items():
                     getattr(res, k)[tr] = val
         stats = {"exact_first_hits": n_exact,
@@ -237,7 +272,7 @@ class TreeQuery:
         return set_of, s_leaf, s_ids, self.table.cls[s_ids], loc.trees[first]
 
     # ------------------------------------------------------------------ the paper's policy
-    def _ri(self, o, d, tmax, loc, res, ans, why, clock) -> int:
+    def _ri(self, o, d, tmax, loc, res, ans, why, clock, known) -> int:
         tree, tab, opt = self.tree, self.table, self.opt
         with clock("group"):
             set_of, s_leaf, s_ids, s_cls, s_trees = self._sets(loc)
@@ -253,13 +288,13 @@ class TreeQuery:
         if len(two):
             with clock("first_hits"):
                 pc[two] = self._first_hit_class(o, d, tmax, rows[two], set_of[two],
-                                                np.flatnonzero(n_cls == 2), s_ids)
+                                                np.flatnonzero(n_cls == 2), s_ids, known)
         ans[rows[pc == -1]] = MISS
         go = np.flatnonzero(pc >= 0)
         if opt.max_error_deg is not None:
             with clock("first_hits"):
                 self._check_misses(o, d, tmax, loc, np.flatnonzero(pc == -1), set_of, s_leaf,
-                                   ans, why)
+                                   ans, why, known)
             go = self._within_tolerance(loc, go, set_of, s_leaf, ans, why)
         if opt.path_identity:
             go = self._same_path(loc, go, set_of, pc, s_ids, s_leaf, ans, why)
@@ -423,7 +458,7 @@ class TreeQuery:
         why[bad] = WHY_PATH
         return go[ok]
 
-    def _check_misses(self, o, d, tmax, loc, miss, set_of, s_leaf, ans, why):
+    def _check_misses(self, o, d, tmax, loc, miss, set_of, s_leaf, ans, why, known):
         """Tolerance mode, the rays ``miss`` the samples answer MISS (all 16 miss, or the exact
         first hit against the candidate patches missed): the miss is trusted where the bake
         verified it (within the tolerance, no object/miss boundary in the four leaves or the
@@ -436,20 +471,33 @@ class TreeQuery:
         ok = s_ok[set_of[miss]] & (tree.vp_err[c] <= tol) & (tree.vp_flags[c] & BOUNDARY == 0)
         r = loc.ray[miss[~ok]]
         if len(r):
-            r = r[self.st.tracer.intersect(o[r], d[r], tmax=tmax[r]).hit]
+            new = r[known.pos[r] < 0]        # the others' first hit stage searched every patch
+            if len(new):
+                known.add(new, self.st.tracer.intersect(o[new], d[new], tmax=tmax[new]))
+            r = r[known.hit(r)]
             ans[r] = TRACED
             why[r] = WHY_UNSAMPLED
 
-    def _first_hit_class(self, o, d, tmax, rows, set_of, two_sets, s_ids) -> np.ndarray:
+    def _first_hit_class(self, o, d, tmax, rows, set_of, two_sets, s_ids, known) -> np.ndarray:
         """Class of the exact first hit (-1: miss) of rays ``rows`` against only the distinct
-        patches of their two-class sets (one tracer call for all of them)."""
+        patches of their two-class sets. One tracer call against every patch finds it where
+        the nearest hit is a candidate's or there is none (it is kept in ``known`` for the
+        trace stage); the few rays whose nearest hit is another patch's are searched again
+        against their candidates only."""
         pat = np.sort(self.table.patch[s_ids[two_sets]].astype(np.int64), axis=1)
         dup = np.zeros_like(pat, bool)
         dup[:, 1:] = pat[:, 1:] == pat[:, :-1]
         cand = np.where(dup | (pat < 0), -1, pat)
         cand = cand[np.searchsorted(two_sets, set_of)]
-        hit = self.st.tracer.intersect(o[rows], d[rows], tmax=tmax[rows], patches=cand)
-        return np.where(hit.hit, hit.cls, -1)
+        hit = self.st.tracer.intersect(o[rows], d[rows], tmax=tmax[rows])
+        known.add(rows, hit)
+        cls = np.where(hit.hit, hit.cls, -1)
+        other = np.flatnonzero(hit.hit & ~np.any(cand == hit.patch[:, None], axis=1))
+        if len(other):
+            r = rows[other]
+            h2 = self.st.tracer.intersect(o[r], d[r], tmax=tmax[r], patches=cand[other])
+            cls[other] = np.where(h2.hit, h2.cls, -1)
+        return cls
 
     def _unit_far_pairs(self, u_far, u_ids, u_ok, u_checked, ang, dist):
         """Paper 5.3's far pairs among the 32 items (usable, checked) of the units ``u_far``,

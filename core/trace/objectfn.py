@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..scene.model import ObjectMaterial
-from .patches import PatchTracer
+from .patches import PatchHit, PatchTracer
 
 # Secondary rays start on the surface (to ~1e-11 of the object size after Newton); hits nearer
 # than this fraction of the object diagonal are the start point itself, not a new event.
@@ -77,15 +77,35 @@ def fresnel_dielectric(cos_i, eta):
     return np.where(sin_t2 >= 1.0, 1.0, 0.5 * (rs * rs + rp * rp))
 
 
+def _first_hits(tracer, o, d, tmax, known):
+    """tracer.intersect(o, d, tmax=tmax), reusing the hits ``known`` = (rows, PatchHit)."""
+    if known is None or len(known[0]) == 0:
+        return tracer.intersect(o, d, tmax=tmax)
+    rows, hits = known
+    rest = np.ones(len(o), bool)
+    rest[rows] = False
+    rest = np.flatnonzero(rest)
+    tm = None if tmax is None else np.asarray(tmax, np.float64)[rest]
+    found = tracer.intersect(o[rest], d[rest], tmax=tm)
+    out = PatchHit(**{k: np.empty((len(o),) + v.shape[1:], v.dtype)
+                      for k, v in found.__dict__.items()})
+    out.put(rest, found)
+    out.put(rows, hits)
+    return out
+
+
 def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
-                 max_events: int = 8, tmax=None, inside=None) -> ObjectRays:
+                 max_events: int = 8, tmax=None, inside=None, first=None) -> ObjectRays:
     """Apply f to N rays (origins (N,3), unit dirs (N,3)); ``tmax`` limits the first segment
     (something in the environment in front of the object). ``inside`` (N,) bool marks rays that
-    start inside a refractive object (default: all start outside)."""
+    start inside a refractive object (default: all start outside). ``first``: optional
+    (rows, PatchHit), the first hits of rays ``rows`` already found by ``tracer.intersect``
+    with the same tmax and every patch (the RI-Tree query's first-hit stage); the other rays'
+    first hits are found here."""
     o = np.array(origins, dtype=np.float64)
     d = np.array(dirs, dtype=np.float64)
     n = len(o)
-    first = tracer.intersect(o, d, tmax=tmax)
+    first = _first_hits(tracer, o, d, tmax, first)
     res = ObjectRays(hit=first.hit.copy(), null=np.zeros(n, bool), out_origin=o.copy(),
                      out_dir=d.copy(), t_first=first.t.copy(), point=first.point.copy(),
                      normal=first.normal.copy(), patch=first.patch.copy(), cls=first.cls.copy(),

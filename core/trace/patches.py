@@ -88,6 +88,15 @@ class PatchHit:
     u: np.ndarray
     v: np.ndarray
 
+    def take(self, idx) -> "PatchHit":
+        """The rows ``idx`` of every array."""
+        return PatchHit(**{k: v[idx] for k, v in self.__dict__.items()})
+
+    def put(self, rows, other: "PatchHit") -> None:
+        """Overwrite rows ``rows`` with ``other`` (len(rows) hits), in place."""
+        for k, v in self.__dict__.items():
+            v[rows] = getattr(other, k)
+
 
 @dataclass
 class _Group:

@@ -221,6 +221,26 @@ def test_candidate_patch_restriction():
     assert not none.hit[0]
 
 
+def test_known_first_hits_are_reused_not_searched_again(sphere_tracer):
+    """trace_object(first=(rows, hits)): the hits of ``rows`` are taken as given (the RI-Tree
+    query's first-hit stage found them) and the result equals a full trace."""
+    rng = np.random.default_rng(7)
+    o, d = rays_at_sphere(300, rng)
+    mat = ObjectMaterial(kind="glass", ior=1.5)
+    full = trace_object(sphere_tracer, mat, o, d)
+    rows = np.arange(0, 300, 3)
+    known = sphere_tracer.intersect(o[rows], d[rows])
+    part = trace_object(sphere_tracer, mat, o, d, first=(rows, known))
+    assert np.array_equal(part.hit, full.hit) and np.array_equal(part.events, full.events)
+    assert angle(part.out_dir, full.out_dir).max() < 1e-12
+    assert np.abs(part.point - full.point).max() < 1e-12
+    # given hits are not searched again: rows declared misses come back unchanged misses
+    miss = sphere_tracer.intersect(o[rows] + 10 * R, d[rows])
+    assert not miss.hit.any()
+    fake = trace_object(sphere_tracer, mat, o, d, first=(rows, miss))
+    assert not fake.hit[rows].any() and fake.hit[np.setdiff1d(np.arange(300), rows)].all()
+
+
 def test_silhouette_hit_or_miss_matches_analytic(sphere_tracer):
     """Rays with impact parameters within 0.5 % of the radius: hit exactly when b < R (rays
     within 1e-9 R of tangency are allowed either answer), nearest root to 1e-7."""
