@@ -85,14 +85,13 @@ def locate(tree, o, d, tmax):
     leaf, lx, ly = leaf.reshape(-1, 4), lx.reshape(-1, 4), ly.reshape(-1, 4)
     ok &= np.all(leaf >= 0, axis=1)
     # leaves inside the baked rectangle with every corner sampled answer all their rays;
-    # elsewhere each ray is checked
+    # elsewhere each ray is checked (against its cell's four baked rectangles at once)
     check = np.flatnonzero(ok & ~np.all(tree.leaf_ok[np.maximum(leaf, 0)], axis=1))
     if len(check):
-        rect = tree.dir_rect[trees[check]]
-        uc, vc = u[check, None], v[check, None]
-        ok[check] = np.all((uc >= rect[..., 0]) & (uc <= rect[..., 1]) & (vc >= rect[..., 2])
-                           & (vc <= rect[..., 3]), axis=1) \
-            & np.all(tree.dir_forest.corner[leaf[check]] >= 0, axis=(1, 2))
+        rect = tree.cell_rect[vnode[check], slot[check]]
+        uc, vc = u[check], v[check]
+        ok[check] = (uc >= rect[:, 0]) & (uc <= rect[:, 1]) & (vc >= rect[:, 2]) \
+            & (vc <= rect[:, 3]) & np.all(tree.leaf_sampled[leaf[check]], axis=1)
     outside = np.concatenate([np.flatnonzero(inside), q[~ok]])
     k = np.flatnonzero(ok)
     if len(k) == len(ok):

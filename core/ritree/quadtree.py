@@ -176,6 +176,10 @@ class DenseLocator:
             cx = (forest.ix[nodes].astype(np.int64) << sh)[:, None, None] + span[None, None, :]
             cy = (forest.iy[nodes].astype(np.int64) << sh)[:, None, None] + span[None, :, None]
             self.table[self.offset[tree[nodes]][:, None, None] + cy * side + cx] = nodes[:, None, None]
+        # per node, as Forest.descend computes them: 2^level and the cell index, float64
+        self.scale = np.exp2(forest.level.astype(np.float64))
+        self.ix = forest.ix.astype(np.float64)
+        self.iy = forest.iy.astype(np.float64)
 
     def locate(self, trees, x, y):
         """As Forest.locate."""
@@ -188,4 +192,10 @@ class DenseLocator:
         cx = np.minimum((fx * side).astype(np.int64), side - 1)
         cy = np.minimum((fy * side).astype(np.int64), side - 1)
         start = np.where(off >= 0, self.table[np.maximum(off, 0) + cy * side + cx], -1)
-        return self.forest.descend(start, fx, fy)
+        if self.level < self.forest.max_level:
+            return self.forest.descend(start, fx, fy)
+        # the table's nodes are leaves: Forest.descend's cell-local coordinates, no descent
+        nd = np.maximum(start, 0)
+        lx = np.clip(fx * self.scale[nd] - self.ix[nd], 0.0, 1.0)
+        ly = np.clip(fy * self.scale[nd] - self.iy[nd], 0.0, 1.0)
+        return start, lx, ly

@@ -260,6 +260,24 @@ class RITree:
             ok &= (c0 >= rect[:, 2 * axis]) & (c1 <= rect[:, 2 * axis + 1])
         return ok
 
+    @cached_property
+    def leaf_sampled(self) -> np.ndarray:
+        """(K,) direction-tree nodes whose four corners are sampled."""
+        return np.all(self.dir_forest.corner >= 0, axis=1)
+
+    @cached_property
+    def cell_rect(self) -> np.ndarray:
+        """(Kv, 5, 4) per viewpoint-forest node and hemicube slot: the intersection of its four
+        viewpoints' baked rectangles (``dir_rect``) of that slot (empty where a corner has no
+        viewpoint), so a query direction inside it is inside all four."""
+        vps = self.vp_forest.corner
+        trees = np.maximum(vps, 0)[:, :, None] * 5 + np.arange(5)              # (Kv, 4, 5)
+        r = self.dir_rect[trees]                                               # (Kv, 4, 5, 4)
+        out = np.stack([r[..., 0].max(axis=1), r[..., 1].min(axis=1),
+                        r[..., 2].max(axis=1), r[..., 3].min(axis=1)], axis=-1)
+        out[np.any(vps < 0, axis=1)] = (np.inf, -np.inf, np.inf, -np.inf)
+        return out
+
     def sample_class(self, ids: np.ndarray) -> np.ndarray:
         """Class of sample ids (-1: misses the object)."""
         p = self.samples.patch[ids]
