@@ -195,3 +195,27 @@ def drop_outlier(far, used, pos, q):
     left = np.any(f & out[:, :, None] & out[:, None, :], axis=(1, 2))
     out[left] = False
     return out, bad
+
+
+def drop_outlier_units(far, used, unit, pos, q):
+    """drop_outlier(far[unit], used[unit], pos, q) for rows that share their far pairs and
+    used interpolants with a unit (far (U, K, K), used (U, K), unit (N,)): degrees and what a
+    drop leaves are found once per unit, only the tie-break by distance per row."""
+    f = far & used[:, :, None] & used[:, None, :]
+    deg = f.sum(axis=2)                                                    # (U, K)
+    bad_u = deg.any(axis=1)
+    bad = bad_u[unit]
+    out = used[unit]
+    rows = np.flatnonzero(bad)
+    if len(rows) == 0:
+        return out, bad
+    uu = unit[rows]
+    top = used & (deg == deg.max(axis=1, keepdims=True))                   # most far pairs
+    dist = np.linalg.norm(np.asarray(pos) - q[rows, None, :], axis=-1)
+    drop = np.argmax(np.where(top[uu], dist, -1.0), axis=1)
+    # far pairs left once interpolant j is dropped: all but row j and column j
+    left = (deg.sum(axis=1, keepdims=True) - deg - f.sum(axis=1)
+            + np.diagonal(f, axis1=1, axis2=2)) > 0                           # (U, K)
+    out[rows, drop] = False
+    out[rows[left[uu, drop]]] = False
+    return out, bad

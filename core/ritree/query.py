@@ -30,7 +30,8 @@ from ..trace.objectfn import ObjectRays, fresnel_dielectric, reflect
 from ..trace.patches import PatchHit
 from .extras import extra_weights
 from .interp import (BILINEAR, EXTRA, EXTRAPOLATED, FAIL, TRIANGLE, UNIT_CORNERS,
-                     bilinear_weights, cell_weights, drop_outlier, far_pairs, may_have_far_pairs)
+                     bilinear_weights, cell_weights, drop_outlier, drop_outlier_units, far_pairs,
+                     may_have_far_pairs)
 from .locate import Located, locate
 from .tree import BOUNDARY, PATH_CHANGE
 
@@ -167,6 +168,11 @@ def blend(vals, rows, w) -> np.ndarray:
         b = min(a + BLEND_BLOCK, n)
         out[a:b] = np.matmul(w[a:b, None, :].astype(np.float32), vals[rows[a:b]])[:, 0]
     return out
+
+
+def far_bits(far) -> np.ndarray:
+    """Far-pair matrices (F, 32, 32) bool as bit rows (F, 32) uint32: bit j of row i."""
+    return np.packbits(far, axis=2, bitorder="little").view("<u4")[..., 0].astype(np.uint32)
 
 
 # Item of each (DQ k, slot j) of a ray by default: the DQ's corners 4k + j, and for slots 4, 5
@@ -333,8 +339,9 @@ class TreeQuery:
             thr_hit = np.zeros((m, 4), bool)            # DQs whose corners the thresholds cut
             fr = np.flatnonzero(u_far[unit_of])         # rays that need the pairwise tests
             if len(fr):
-                fr_far = far[far_of[unit_of[fr]]]                               # (R, 32, 32)
-                self._direction_thresholds(fr, fr_far, loc, usable, thr_hit)
+                fr_row = far_of[unit_of[fr]]             # their units' rows of ``far``
+                self._direction_thresholds(fr, far, fr_row, u_ok[:, :16], unit_of, loc,
+                                           usable, thr_hit)
             w = np.zeros((m, 4, 6))                     # per DQ: 4 corners + up to 2 extras
             item = np.broadcast_to(DEFAULT_ITEMS, (m, 4, 6))
             dq_st = np.zeros((m, 4), np.int8)
@@ -360,8 +367,8 @@ class TreeQuery:
             dq_ok = dq_st != FAIL
             thr_q = np.zeros(m, bool)
             if per_sample and len(fr):
-                self._viewpoint_thresholds(fr, fr_far, item, usable, w, is_extra, dq_ok, checked,
-                                           loc, thr_hit, thr_q)
+                self._viewpoint_thresholds(fr, far_bits(far)[fr_row], item, usable, w, is_extra,
+                                           dq_ok, checked, loc, thr_hit, thr_q)
             elif thresholds and not per_sample:
                 # the intermediate rays f*(R_VP): parallel query rays from the four viewpoints
                 inter = np.einsum("nkj,nkjc->nkc", w.astype(np.float32),
@@ -513,31 +520,41 @@ class TreeQuery:
         return full, far_of
 
     @staticmethod
-    def _direction_thresholds(fr, far, loc, usable, thr_hit):
-        """Paper 5.3 at the direction level for rays ``fr`` (their units' item far pairs
-        ``far`` (R, 32, 32)): far corners of a DQ are not usable (an outlier is dropped, which
-        one depends on where the ray falls in the cell)."""
-        f = far[:, :16, :16].reshape(-1, 4, 4, 4, 4)
+    def _direction_thresholds(fr, far, fr_row, u_used, unit_of, loc, usable, thr_hit):
+        """Paper 5.3 at the direction level for rays ``fr`` (``fr_row``: their units' rows of
+        the far pairs ``far`` (F, 32, 32); ``u_used`` (U, 16) the units' usable corners): far
+        corners of a DQ are not usable (an outlier is dropped, which one depends on where the
+        ray falls in the cell). Degrees and leftovers are found per unit, not per ray."""
+        rows, pos = np.unique(fr_row, return_inverse=True)
+        first = np.zeros(len(rows), np.int64)
+        first[pos] = np.arange(len(fr))          # a ray of each unit (all share its usable)
+        used = u_used[unit_of[fr[first]]].reshape(-1, 4, 4)
+        f = far[rows, :16, :16].reshape(-1, 4, 4, 4, 4)
         for k in range(4):
-            usable[fr, k], thr_hit[fr, k] = drop_outlier(
-                f[:, k, :, k], usable[fr, k], UNIT_CORNERS,
+            usable[fr, k], thr_hit[fr, k] = drop_outlier_units(
+                f[:, k, :, k], used[:, k], pos, UNIT_CORNERS,
                 np.stack([loc.lx[fr, k], loc.ly[fr, k]], 1))
 
     @staticmethod
-    def _viewpoint_thresholds(fr, far, item, usable, w, is_extra, dq_ok, checked, loc, thr_hit,
+    def _viewpoint_thresholds(fr, bits, item, usable, w, is_extra, dq_ok, checked, loc, thr_hit,
                               thr_q):
-        """Paper 5.3 at the viewpoint level for rays ``fr`` (their units' item far pairs
-        ``far`` (R, 32, 32), their items ``item[fr]``): DQs are far apart when any of their
-        interpolants are (an extra-sample triangle's samples for extras); a DQ with a far pair
-        inside is unusable, then an outlying DQ is dropped."""
+        """Paper 5.3 at the viewpoint level for rays ``fr`` (``bits`` (R, 32): their units'
+        far pairs as bit rows, bit j of row i set where items i and j are far; their items
+        ``item[fr]``): DQs are far apart when any of their interpolants are (an extra-sample
+        triangle's samples for extras); a DQ with a far pair inside is unusable, then an
+        outlying DQ is dropped."""
         n = len(fr)
         member = np.concatenate([usable[fr], np.zeros((n, 4, 2), bool)], axis=2)
         member = np.where(is_extra[fr, :, None], w[fr] != 0, member)
-        member = (member & dq_ok[fr, :, None] & checked[fr, :, None]).reshape(n, 24)
-        it = item[fr].reshape(n, 24)
-        pair = far[np.arange(n)[:, None, None], it[:, :, None], it[:, None, :]]
-        pair &= member[:, :, None] & member[:, None, :]
-        blocks = pair.reshape(n, 4, 6, 4, 6).any(axis=4).any(axis=2)          # (n, 4, 4)
+        member = member & dq_ok[fr, :, None] & checked[fr, :, None]            # (n, 4, 6)
+        it = item[fr]
+        # each DQ's member items as a bit set (a ray's items are distinct: sum = or), and
+        # the items far from any of them
+        mask = np.where(member, np.left_shift(np.uint32(1), it.astype(np.uint32)),
+                        np.uint32(0)).sum(axis=2, dtype=np.uint32)             # (n, 4)
+        far_of_items = np.take_along_axis(bits, it.reshape(n, 24), axis=1).reshape(n, 4, 6)
+        reach = np.bitwise_or.reduce(np.where(member, far_of_items, np.uint32(0)), axis=2)
+        blocks = (reach[:, :, None] & mask[:, None, :]) != 0                   # (n, 4, 4)
         r = np.flatnonzero(blocks.any(axis=(1, 2)))
         blocks = blocks[r]
         inner = np.diagonal(blocks, axis1=1, axis2=2)                           # (R, 4)

@@ -10,7 +10,8 @@ import pytest
 
 from riray.ritree.dircube import CUBE, DOMAIN, N_SLOTS, SLOT, UV_AXES, cube_to_dir, dir_to_cube
 from riray.ritree.interp import (BILINEAR, EXTRAPOLATED, FAIL, TRIANGLE, UNIT_CORNERS,
-                                 barycentric, cell_weights, drop_outlier, far_pairs, pick_triangle,
+                                 barycentric, cell_weights, drop_outlier, drop_outlier_units,
+                                 far_pairs, pick_triangle,
                                  triangle_status)
 from riray.ritree.quadtree import Forest
 
@@ -563,3 +564,22 @@ def test_drop_outlier_rules():
     assert np.array_equal(out, np.array([c[3] for c in cases], bool))
     assert np.array_equal(changed, np.array([c[4] for c in cases]))
     assert np.array_equal(used, np.array([c[1] for c in cases], bool))   # input untouched
+
+
+def test_drop_outlier_units_is_drop_outlier_per_row():
+    """Per-unit degrees and leftovers give drop_outlier's answer on every row of every unit,
+    asymmetric far matrices and exact distance ties included."""
+    rng = np.random.default_rng(5)
+    u = 400
+    far = rng.random((u, 4, 4)) < 0.35
+    sym = rng.random(u) < 0.5
+    far[sym] |= np.transpose(far[sym], (0, 2, 1))
+    far[:, np.arange(4), np.arange(4)] = False
+    used = rng.random((u, 4)) < 0.8
+    unit = rng.integers(0, u, 3000)
+    q = rng.random((3000, 2))
+    q[::7] = 0.5                                        # exact ties in the distance
+    want = drop_outlier(far[unit], used[unit], UNIT_CORNERS, q)
+    got = drop_outlier_units(far, used, unit, UNIT_CORNERS, q)
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    assert want[1].any() and (want[0] != used[unit]).any()
