@@ -146,17 +146,23 @@ TRACING_STAGES = ("first_hits", "trace")
 
 def group_rows(keys: np.ndarray):
     """Group the rows of an (m, k) integer array: (group id of each row (m,), index of the
-    first row of each group (G,)); groups are numbered in sorted key order."""
+    first row of each group (G,)); groups are numbered in sorted key order. Runs of equal
+    consecutive rows (neighbouring pixels share their sample set) are sorted as one."""
     m = len(keys)
     if m == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    order = np.lexsort(keys.T[::-1])
-    sk = keys[order]
-    new = np.ones(m, bool)
+    head = np.ones(m, bool)
+    head[1:] = np.any(keys[1:] != keys[:-1], axis=1)
+    heads = np.flatnonzero(head)
+    run_of = np.cumsum(head) - 1
+    hk = keys[heads]
+    order = np.lexsort(hk.T[::-1])
+    sk = hk[order]
+    new = np.ones(len(heads), bool)
     new[1:] = np.any(sk[1:] != sk[:-1], axis=1)
-    group = np.empty(m, np.int64)
+    group = np.empty(len(heads), np.int64)
     group[order] = np.cumsum(new) - 1
-    return group, order[new]
+    return group[run_of], heads[order[new]]
 
 
 def blend(vals, rows, w) -> np.ndarray:
@@ -333,6 +339,17 @@ class TreeQuery:
                 far, far_of = self._unit_far_pairs(u_far, items.ids[u_set], u_ok, u_checked,
                                                    ang, dist)
                 u_far = far.any(axis=(1, 2))[far_of]          # units with a real far pair
+        if per_sample or not thresholds:
+            # units whose 16 corners are all usable and pass the thresholds: every ray of
+            # them blends its 16 corners bilinearly at both levels, wherever it falls
+            easy = (u_ok[:, :16].all(axis=1) & ~u_far)[unit_of]
+            if easy.any():
+                e, h = np.flatnonzero(easy), np.flatnonzero(~easy)
+                with clock("blend"):
+                    self._blend_bilinear(loc.take(e), items, set_of[e], pc[e], o, d, tmax,
+                                         res, ans, why)
+                loc, set_of, pc, unit_of = loc.take(h), set_of[h], pc[h], unit_of[h]
+                m = len(loc)
         with clock("weights"):
             usable = u_ok[unit_of, :16].reshape(m, 4, 4)
             checked = u_checked[unit_of]
@@ -410,6 +427,27 @@ class TreeQuery:
                 if len(r):
                     self._null(loc.take(r), s_ids[set_of[r]], pc[r], o, d, tmax, res, ans, why)
         return len(two)
+
+    def _blend_bilinear(self, loc, items, set_of, pc, o, d, tmax, res, ans, why):
+        """Rays ``loc`` (of sets ``set_of``, classes ``pc``) whose 16 corners are all usable:
+        bilinear weights at both levels, one blend (the general path's weights and answers,
+        without its per-ray rules)."""
+        W = bilinear_weights(loc.alpha, loc.beta)
+        lx, ly = loc.lx, loc.ly
+        w = np.stack([(1 - lx) * (1 - ly), lx * (1 - ly), (1 - lx) * ly, lx * ly], axis=2)
+        wr = (W[:, :, None] * w).reshape(len(loc), 16)
+        out = blend(items.corner_vals, set_of, wr)
+        best = np.argmax(np.abs(wr), axis=1)
+        od, nm = out[:, 3:6], out[:, 9:12]
+        lod, lnm = np.linalg.norm(od, axis=1), np.linalg.norm(nm, axis=1)
+        ok = (lod > MIN_BLEND_NORM) & (lnm > MIN_BLEND_NORM)
+        rows = loc.ray
+        ans[rows] = np.where(ok, FULL, TRACED)
+        why[rows] = np.where(ok, 0, WHY_BLEND)
+        g = np.flatnonzero(ok)
+        self._fill(res, ans, rows[g], o, d, tmax, out[g, 0:3], od[g] / lod[g, None],
+                   out[g, 6:9], nm[g] / lnm[g, None], pc[g],
+                   self.table.patch[items.ids[set_of[g], best[g]]].astype(np.int64))
 
     def _blend(self, items, set_of, cand, W, w, item, is_extra):
         """Blend rays ``cand`` (of sets ``set_of``) with viewpoint weights W (m, 4) and per-DQ
@@ -642,10 +680,11 @@ class TreeQuery:
         t_first = np.einsum("ij,ij->i", pt - o[rows], dd)
         # the environment is in front of the interpolated hit: the object is not seen
         hidden = t_first >= tmax[rows]
-        ans[rows[hidden]] = MISS
-        k = ~hidden
-        rows, oo, od, pt, nm, cls, patch, dd, t_first = (
-            a[k] for a in (rows, oo, od, pt, nm, cls, patch, dd, t_first))
+        if hidden.any():
+            ans[rows[hidden]] = MISS
+            k = ~hidden
+            rows, oo, od, pt, nm, cls, patch, dd, t_first = (
+                a[k] for a in (rows, oo, od, pt, nm, cls, patch, dd, t_first))
         flip = np.einsum("ij,ij->i", nm, dd) > 0
         nm = np.where(flip[:, None], -nm, nm)
         res.hit[rows] = True

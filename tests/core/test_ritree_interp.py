@@ -583,3 +583,22 @@ def test_drop_outlier_units_is_drop_outlier_per_row():
     got = drop_outlier_units(far, used, unit, UNIT_CORNERS, q)
     assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
     assert want[1].any() and (want[0] != used[unit]).any()
+
+
+def test_group_rows_against_a_dictionary():
+    """query.group_rows: groups numbered in sorted key order, each group's first row the
+    smallest row index holding its key; runs of equal neighbours and scattered repeats."""
+    from riray.ritree.query import group_rows
+    rng = np.random.default_rng(11)
+    for trial in range(30):
+        base = rng.integers(0, 4, (int(rng.integers(1, 30)), 4))
+        pick = base[rng.integers(0, len(base), 200)]
+        keys = np.repeat(pick, rng.integers(1, 5, 200), axis=0)
+        group, first = group_rows(keys)
+        distinct = sorted({tuple(k) for k in keys})
+        assert len(first) == len(distinct)
+        for g, key in enumerate(distinct):
+            rows = [i for i in range(len(keys)) if tuple(keys[i]) == key]
+            assert first[g] == rows[0]
+            assert np.array_equal(np.flatnonzero(group == g), rows)
+    assert [len(a) for a in group_rows(np.zeros((0, 4), np.int64))] == [0, 0]

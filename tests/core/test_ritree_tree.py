@@ -761,14 +761,18 @@ def test_raytree_policy_handmade(mirror):
     assert np.all(ans == TRACED)
 
 
-def test_opposed_samples_are_traced_not_blended(mirror):
-    """Corners whose output directions cancel (+d on one diagonal, -d on the other) blend to
-    sqrt(3) |u v| d: where that is shorter than MIN_BLEND_NORM (u = 0 here) both policies
-    trace the ray instead of normalizing a zero vector; elsewhere they interpolate it."""
+@pytest.mark.parametrize("opposed", ["direction", "normal"])
+def test_opposed_samples_are_traced_not_blended(mirror, opposed):
+    """Corners whose output directions (or first-hit normals) cancel (+d on one diagonal, -d
+    on the other) blend to sqrt(3) |u v| d: where that is shorter than MIN_BLEND_NORM (u = 0
+    here) both policies trace the ray instead of normalizing a zero vector; elsewhere they
+    interpolate it."""
     st, _ = mirror
 
     def values(x, y, u, v):
         oo, od, pt, nm = affine_values(x, y, u, v)
+        if opposed == "normal":
+            return oo, od, pt, nm * np.sign(u * v)[:, None]
         return oo, od * np.sign(u * v)[:, None], pt, nm
 
     tree = handmade_tree(st, values)
