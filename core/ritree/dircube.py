@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..rowops import argmax3
+
 UV_AXES = ((1, 2), (0, 2), (0, 1))   # world axes carrying (u, v) on the faces of each axis
 N_SLOTS = 5
 
@@ -23,7 +25,7 @@ N_SLOTS = 5
 def dir_to_cube(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(face, u, v) for non-zero directions d (N, 3)."""
     a = np.abs(d)
-    axis = np.argmax(a, axis=1)
+    axis = argmax3(a)
     rows = np.arange(len(d))
     m = a[rows, axis]
     face = 2 * axis + (d[rows, axis] > 0)

@@ -11,6 +11,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from ..rowops import all_last, argmax3, min3
 from ..trace.boxes import slab_intervals
 from .dircube import DOMAIN, SLOT, UV_AXES, dir_to_cube
 
@@ -24,11 +25,11 @@ def entry_points(tree, o, d):
     lo, hi = tree.box_lo, tree.box_hi
     tnear, tfar = slab_intervals(o, d, lo, hi)
     ins = (o >= lo) & (o <= hi)
-    axis = np.argmax(tnear, axis=1)
+    axis = argmax3(tnear)
     rows = np.arange(len(o))
     tn = tnear[rows, axis]
-    tf = tfar.min(axis=1)
-    inside = np.all(ins, axis=1)
+    tf = min3(tfar)
+    inside = all_last(ins)
     t_in = np.where((tn <= tf) & (tf >= 0), np.maximum(tn, 0.0), np.inf)
     face = 2 * axis + (d[rows, axis] < 0)
     q = o + np.where(np.isfinite(t_in), t_in, 0.0)[:, None] * d
@@ -73,7 +74,7 @@ def locate(tree, o, d, tmax):
     vps = tree.vp_forest.corner[np.maximum(vnode, 0)]
     cf, u, v = dir_to_cube(d[q])
     slot = SLOT[face[q], cf]
-    ok = (vnode >= 0) & np.all(vps >= 0, axis=1) & (slot >= 0)
+    ok = (vnode >= 0) & all_last(vps >= 0) & (slot >= 0)
     trees = np.where(ok[:, None], vps * 5 + slot[:, None], 0)                     # (m, 4)
     # the four direction trees of a viewpoint cell cover the same slot domain, DOMAIN[face,
     # slot] (their viewpoints lie on one box face): normalize once per ray
@@ -83,15 +84,15 @@ def locate(tree, o, d, tmax):
     leaf, lx, ly = tree.dir_locator.locate_normalized(trees.ravel(), np.repeat(fx, 4),
                                                       np.repeat(fy, 4))
     leaf, lx, ly = leaf.reshape(-1, 4), lx.reshape(-1, 4), ly.reshape(-1, 4)
-    ok &= np.all(leaf >= 0, axis=1)
+    ok &= all_last(leaf >= 0)
     # leaves inside the baked rectangle with every corner sampled answer all their rays;
     # elsewhere each ray is checked (against its cell's four baked rectangles at once)
-    check = np.flatnonzero(ok & ~np.all(tree.leaf_ok[np.maximum(leaf, 0)], axis=1))
+    check = np.flatnonzero(ok & ~all_last(tree.leaf_ok[np.maximum(leaf, 0)]))
     if len(check):
         rect = tree.cell_rect[vnode[check], slot[check]]
         uc, vc = u[check], v[check]
         ok[check] = (uc >= rect[:, 0]) & (uc <= rect[:, 1]) & (vc >= rect[:, 2]) \
-            & (vc <= rect[:, 3]) & np.all(tree.leaf_sampled[leaf[check]], axis=1)
+            & (vc <= rect[:, 3]) & all_last(tree.leaf_sampled[leaf[check]])
     outside = np.concatenate([np.flatnonzero(inside), q[~ok]])
     k = np.flatnonzero(ok)
     if len(k) == len(ok):

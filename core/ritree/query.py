@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..rowops import all_last, any_last, norm3
 from ..trace.objectfn import ObjectRays, fresnel_dielectric, reflect
 from ..trace.patches import PatchHit
 from .extras import extra_weights
@@ -152,14 +153,14 @@ def group_rows(keys: np.ndarray):
     if m == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     head = np.ones(m, bool)
-    head[1:] = np.any(keys[1:] != keys[:-1], axis=1)
+    head[1:] = any_last(keys[1:] != keys[:-1])
     heads = np.flatnonzero(head)
     run_of = np.cumsum(head) - 1
     hk = keys[heads]
     order = np.lexsort(hk.T[::-1])
     sk = hk[order]
     new = np.ones(len(heads), bool)
-    new[1:] = np.any(sk[1:] != sk[:-1], axis=1)
+    new[1:] = any_last(sk[1:] != sk[:-1])
     group = np.empty(len(heads), np.int64)
     group[order] = np.cumsum(new) - 1
     return group[run_of], heads[order[new]]
@@ -342,7 +343,7 @@ class TreeQuery:
         if per_sample or not thresholds:
             # units whose 16 corners are all usable and pass the thresholds: every ray of
             # them blends its 16 corners bilinearly at both levels, wherever it falls
-            easy = (u_ok[:, :16].all(axis=1) & ~u_far)[unit_of]
+            easy = (all_last(u_ok[:, :16].reshape(-1, 2, 8)).all(axis=1) & ~u_far)[unit_of]
             if easy.any():
                 e, h = np.flatnonzero(easy), np.flatnonzero(~easy)
                 with clock("blend"):
@@ -404,7 +405,7 @@ class TreeQuery:
             cand = np.flatnonzero(~few & thr)
             out, best = self._blend(items, set_of, cand, W, w, item, is_extra)
             od, nm = out[:, 3:6], out[:, 9:12]
-            lod, lnm = np.linalg.norm(od, axis=1), np.linalg.norm(nm, axis=1)
+            lod, lnm = norm3(od), norm3(nm)
             blend_ok = np.ones(m, bool)
             blend_ok[cand] = (lod > MIN_BLEND_NORM) & (lnm > MIN_BLEND_NORM)
             good = ~few & thr & blend_ok
@@ -439,7 +440,7 @@ class TreeQuery:
         out = blend(items.corner_vals, set_of, wr)
         best = np.argmax(np.abs(wr), axis=1)
         od, nm = out[:, 3:6], out[:, 9:12]
-        lod, lnm = np.linalg.norm(od, axis=1), np.linalg.norm(nm, axis=1)
+        lod, lnm = norm3(od), norm3(nm)
         ok = (lod > MIN_BLEND_NORM) & (lnm > MIN_BLEND_NORM)
         rows = loc.ray
         ans[rows] = np.where(ok, FULL, TRACED)
