@@ -14,7 +14,9 @@ def slab_intervals(o, d, lo, hi):
         t1 = (lo - o) / d
         t2 = (hi - o) / d
     zero = d == 0.0
-    ins = (o >= lo) & (o <= hi)
-    tnear = np.where(zero, np.where(ins, -np.inf, np.inf), np.minimum(t1, t2))
-    tfar = np.where(zero, np.where(ins, np.inf, -np.inf), np.maximum(t1, t2))
+    tnear, tfar = np.minimum(t1, t2), np.maximum(t1, t2)
+    if zero.any():
+        ins = (o >= lo) & (o <= hi)
+        tnear = np.where(zero, np.where(ins, -np.inf, np.inf), tnear)
+        tfar = np.where(zero, np.where(ins, np.inf, -np.inf), tfar)
     return tnear, tfar
