@@ -142,7 +142,7 @@ def _check_writable(path, folder=False):
         raise ValueError(f"{path}: cannot write in {probe} ({e.strerror})") from None
 
 
-def _bake(scene, args, params, out, st):
+def _bake(scene, args, params, out, st, cluster=None):
     from .ritree import tree as ritree
     from .ritree.bake import bake
     from .ritree.region import region_for_cameras
@@ -152,18 +152,35 @@ def _bake(scene, args, params, out, st):
         cams = [scene.camera(n) for n in names]
         region = region_for_cameras(st, params, cams, scene.render.width, scene.render.height)
     bar = _progress("bake")
-    tree = bake(st, params, region, progress=lambda f, msg: bar(f), workers=args.workers)
+    tree = bake(st, params, region, progress=lambda f, msg: bar(f), workers=args.workers,
+                cluster=cluster)
     ritree.save(tree, out)
     return tree
+
+
+def _connect(spec):
+    """The Dask cluster of ``--scheduler`` (before the slow work); its address and dashboard on
+    stderr."""
+    from .cluster import connect
+    cluster = connect(spec)
+    dash = cluster.dashboard
+    print(f"dask: scheduler {cluster.address}, {cluster.threads()} worker threads"
+          + (f", dashboard {dash}" if dash else ""), file=sys.stderr, flush=True)
+    return cluster
 
 
 def cmd_bake(args):
     from .render.exact import SceneTracer
     params = _bake_params(args)
     _check_writable(args.out)
-    scene = _load(args.scene)
-    st = SceneTracer(scene)
-    tree = _bake(scene, args, params, args.out, st)
+    cluster = _connect(args.scheduler) if args.scheduler else None
+    try:
+        scene = _load(args.scene)
+        st = SceneTracer(scene)
+        tree = _bake(scene, args, params, args.out, st, cluster)
+    finally:
+        if cluster is not None:
+            cluster.close()
     print(json.dumps({"written": args.out, **tree.meta}, indent=2))
     return 0
 
@@ -395,6 +412,10 @@ def build_parser():
     scene_arg(p)
     p.add_argument("--out", required=True, help="the .rit file to write (atomically)")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="bake the direction trees in shards on a Dask cluster: a running "
+                   "scheduler's address (tcp://host:8786) or local:N (N worker processes on "
+                   "this machine); needs riray[cluster] (docs/cluster.md)")
     _bake_opts(p)
     p.set_defaults(fn=cmd_bake)
 
@@ -502,6 +523,9 @@ def _check_options(args):
             workers_default()                       # a bad RIRAY_WORKERS fails here, not later
         elif args.workers < 1:
             raise ValueError(f"--workers must be >= 1 (got {args.workers})")
+        if getattr(args, "scheduler", None) and args.workers is not None:
+            raise ValueError("--workers and --scheduler exclude each other (the cluster's "
+                             "workers trace)")
     for flag in ("width", "height", "size"):
         v = getattr(args, flag, None)
         if v is not None and not 1 <= v <= MAX_IMAGE_SIDE:

@@ -14,6 +14,13 @@
 
 Tracing runs in chunks over worker processes; ``progress(fraction, message)`` is called between
 chunks and ``cancel()`` (returning True) stops the bake with ``BakeCancelled``.
+
+Sharded (``cluster``, see ``..cluster``): a pass's direction trees are split into consecutive
+blocks (shards), each baked whole by ``bake_shard`` on a cluster worker, and ``_Baker._merge``
+appends them exactly as one local pass over all of them would have: direction trees share no
+samples (sample keys start with the tree id), a pass creates nodes level by level and samples
+stage by stage (``_Stages``), each tree on its own, so the local order is (level or stage, tree,
+order within the tree) and the merge interleaves the shards' blocks in that order.
 """
 
 from __future__ import annotations
@@ -29,7 +36,8 @@ from .dircube import CUBE, DOMAIN, N_SLOTS, UV_AXES, cube_to_dir
 from .interp import FAIL, UNIT_CORNERS, angle_between, cell_weights
 from .quadtree import CORNERS, Forest
 from .region import Region
-from .tree import BOUNDARY, PATH_CHANGE, UNVERIFIED, BakeParams, RITree, Samples
+from .tree import (BOUNDARY, PATH_CHANGE, SAMPLE_FIELDS, UNVERIFIED, BakeParams, RITree,
+                   Samples)
 from .verify import viewpoint_errors
 
 TRACE_CHUNK = 8192          # rays per worker task (bounds worker memory, keeps progress fluid)
@@ -69,6 +77,26 @@ class _Tracer:
         for p in parts:
             out.extend(p)
         return out
+
+
+class _Stages:
+    """When a pass creates its samples: 0 the roots' corners; for direction level L < M,
+    1 + 2 L the kept midpoints and 2 + 2 L the children's new corners; then the extra samples,
+    1 + 2 M + step (M + 1) + the leaf's level. Within a pass the samples of one stage are
+    ordered by tree (then as they were within the tree), and stages follow each other."""
+
+    def __init__(self, M: int, steps: int):
+        self.M = M
+        self.count = np.zeros(1 + 2 * M + steps * (M + 1), np.int64)
+
+    def mid(self, level):
+        return 1 + 2 * level
+
+    def corners(self, level):
+        return 0 if level < 0 else 2 + 2 * level
+
+    def extra(self, step, leaf_level):
+        return 1 + 2 * self.M + step * (self.M + 1) + leaf_level
 
 
 class _SampleIndex:
@@ -211,8 +239,10 @@ class _Progress:
 
 
 def bake(st, params: BakeParams | None = None, region: Region | None = None, progress=None,
-         cancel=None, workers=None) -> RITree:
-    """Bake the RI-Tree of ``st`` (render.exact.SceneTracer) with ``params`` over ``region``.
+         cancel=None, workers=None, cluster=None) -> RITree:
+    """Bake the RI-Tree of ``st`` (render.exact.SceneTracer) with ``params`` over ``region``,
+    tracing over ``workers`` local processes, or with ``cluster`` (``..cluster.Cluster``) as
+    shards on a Dask cluster: the same tree either way.
 
     With a camera region and ``params.viewpoint_refine`` > 0, the viewpoint cells where the
     cameras' own rays would still be traced (too few usable interpolants, thresholds) or where
@@ -224,6 +254,7 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
     refine = params.viewpoint_refine if region is not None and region.rays is not None else 0
     prog = _Progress(progress, 1 + refine, params.direction_depth, params.search_steps)
     baker = _Baker(st, params, prog, cancel, workers)
+    baker.cluster = cluster
     baker.start(region)
     passes, measured = 0, False
     for _ in range(refine):
@@ -239,7 +270,10 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
     tree.meta.update({"fingerprint": fingerprint(st.scene.object, st.scene.render.max_events),
                       "region": (region or Region()).describe(), "refine_passes": passes,
                       "bake_seconds": round(time.perf_counter() - t0, 3),
-                      "bake_cpu_s": round(_cpu_seconds() - c0, 3)})
+                      "bake_cpu_s": round(_cpu_seconds() - c0 + baker.remote_cpu_s, 3)})
+    if cluster is not None:
+        tree.meta["cluster"] = {**cluster.describe(), "shards": baker.shards,
+                                "merge_s": round(baker.merge_s, 3)}
     prog.emit("done", done=True)
     return tree
 
@@ -277,6 +311,8 @@ class _Baker:
         self.samples = Samples.empty()
         self.index = _SampleIndex()
         self.tracer = _Tracer(st, self, workers, progress, cancel)
+        self.stages = _Stages(self.M, params.search_steps)
+        self.cluster, self.shards, self.remote_cpu_s, self.merge_s = None, 0, 0.0, 0.0
         self.dir_err = np.zeros(0, np.float32)
         self.dir_flags = np.zeros(0, np.uint8)
         self.vp_err = self.vp_flags = None
@@ -351,8 +387,15 @@ class _Baker:
         self.tracer.kind = kind
         return self.tracer(vp, cube, u, v)
 
-    def _ensure(self, tr, gxy):
-        """Sample ids for grid points (tree, gx, gy), tracing the ones not sampled yet."""
+    def _add(self, s: Samples, stage) -> np.ndarray:
+        """Append samples ``s`` created at ``stage`` (one, or one per sample, non-decreasing);
+        returns their ids."""
+        np.add.at(self.stages.count, np.broadcast_to(stage, (len(s),)), 1)
+        return self.samples.extend(s)
+
+    def _ensure(self, tr, gxy, stage):
+        """Sample ids for grid points (tree, gx, gy), tracing the ones not sampled yet (they are
+        created at ``stage``)."""
         Gd = self.Gd
         keys = tr * Gd * Gd + gxy[:, 1] * Gd + gxy[:, 0]
         ids = self.index.lookup(keys)
@@ -361,7 +404,7 @@ class _Baker:
             nk, first, inv2 = np.unique(keys[miss], return_index=True, return_inverse=True)
             t_new, g_new = tr[miss][first], gxy[miss][first]
             u, v = self.uv_of(t_new, g_new)
-            new = self.samples.extend(self._trace(t_new, u, v))
+            new = self._add(self._trace(t_new, u, v), stage)
             self.index.add(nk, new)
             ids[miss] = new[inv2.ravel()]
         return ids
@@ -374,13 +417,17 @@ class _Baker:
         return (u_hi >= r[:, 0]) & (u_lo <= r[:, 1]) & (v_hi >= r[:, 2]) & (v_lo <= r[:, 3])
 
     def _bake_directions(self, trees):
-        """Adaptive direction trees (paper 3.3) for ``trees``, all trees of a level at once."""
+        """Adaptive direction trees (paper 3.3) for ``trees``, all trees of a level at once
+        (on the cluster's workers, shard by shard, when there is one)."""
+        if self.cluster is not None:
+            return self._bake_sharded(trees)
         p, M, Gd, dirf = self.params, self.M, self.Gd, self.dirf
         self.progress.start_pass(len(trees))
+        self.stages.count[:] = 0
         nodes = dirf.add_roots(trees)
         dirf.corner[nodes] = self._ensure(np.repeat(trees, 4),
-                                          np.tile(CORNERS * (Gd - 1), (len(trees), 1))
-                                          ).reshape(-1, 4)
+                                          np.tile(CORNERS * (Gd - 1), (len(trees), 1)),
+                                          self.stages.corners(-1)).reshape(-1, 4)
         tol_ang, tol_d = np.radians(p.tolerance_deg), p.tolerance_dist * self.diag
         # levels 0..M-1 split where the test fails; leaves at the maximum depth M are tested too
         # (their error recorded, UNVERIFIED where they would split), not split
@@ -408,7 +455,7 @@ class _Baker:
                 # the traced midpoint becomes a corner of the children: keep it
                 keep = np.flatnonzero(split)
                 if len(keep):
-                    new = self.samples.extend(_take(ms, keep))
+                    new = self._add(_take(ms, keep), self.stages.mid(level))
                     self.index.add((tr * Gd * Gd + mid[:, 1] * Gd + mid[:, 0])[keep], new)
             sn = nodes[split]
             if len(sn) == 0:
@@ -416,8 +463,8 @@ class _Baker:
             kids = dirf.split(sn)                                        # (n, 4)
             kc = dirf.corner_coords(kids.ravel(), M)                     # (4n, 4, 2)
             ktr = np.repeat(tr[split], 4)
-            dirf.corner[kids.ravel()] = self._ensure(np.repeat(ktr, 4),
-                                                     kc.reshape(-1, 2)).reshape(-1, 4)
+            dirf.corner[kids.ravel()] = self._ensure(np.repeat(ktr, 4), kc.reshape(-1, 2),
+                                                     self.stages.corners(level)).reshape(-1, 4)
             nodes = kids.ravel()
         # extra samples (paper 4.3) for the new trees' leaves inside their rectangles
         self.progress.label = "extra samples"
@@ -425,12 +472,80 @@ class _Baker:
         leaves = np.flatnonzero((dirf.child < 0) & np.isin(tree_of, trees))
         leaves = leaves[self._overlaps_rect(leaves, tree_of[leaves])]
         ex = _extras(dirf, leaves, self.samples, self.class_of, self._trace_vpc, self.uv_of,
-                     tree_of, M, p.search_steps)
+                     tree_of, M, p.search_steps, self._add, self.stages.extra)
         for k in self.ex:
             self.ex[k] = np.concatenate([self.ex[k], ex[k]])
         order = np.argsort(self.ex["ex_node"])
         self.ex = {k: v[order] for k, v in self.ex.items()}
         self.progress.end_pass()
+
+    # ------------------------------------------------------------------ shards
+    def _bake_sharded(self, trees):
+        """``_bake_directions`` on the cluster: consecutive blocks of ``trees`` baked by
+        ``bake_shard`` on the workers, merged here."""
+        blocks = np.array_split(trees, self.cluster.shard_count(len(trees)))
+        blocks = [b for b in blocks if len(b)]
+        prog = self.progress
+        results = self.cluster.run(self.st, self.params, [self._shard_task(b) for b in blocks],
+                                   self.cancel, prog.cb, (prog.passes_done, prog.passes))
+        t0 = time.perf_counter()
+        self._merge(blocks, results)
+        self.merge_s += time.perf_counter() - t0
+        self.shards += len(blocks)
+        prog.end_pass()
+
+    def _shard_task(self, block) -> dict:
+        """What a worker needs to bake direction trees ``block`` (sorted): their viewpoints and
+        baked rectangles, renumbered from 0 in the same order."""
+        vps, inv = np.unique(block // N_SLOTS, return_inverse=True)
+        rows = (vps[:, None] * N_SLOTS + np.arange(N_SLOTS)).ravel()
+        return {"trees": inv.ravel() * N_SLOTS + block % N_SLOTS, "vp_pos": self.vp_pos[vps],
+                "vp_face": self.vp_face[vps], "rect": self.rect[rows]}
+
+    def _merge(self, blocks, results):
+        """Append the shards' trees (``results`` of ``bake_shard`` for ``blocks``) as one local
+        pass over all of them makes them: nodes in (level, shard, shard's order), samples in
+        (stage, shard, shard's order); ids in node and sample arrays renumbered to match."""
+        f, K0, S0 = self.dirf, len(self.dirf.child), len(self.samples)
+        self._record(np.zeros(0, np.int64), np.float32(0), np.uint8(0))    # grow to K0
+        nshift = _block_shifts(np.array([r["node_counts"] for r in results]), K0)
+        sshift = _block_shifts(np.array([r["sample_counts"] for r in results]), S0)
+        K = K0 + sum(len(r["level"]) for r in results)
+        S = S0 + sum(len(r["patch"]) for r in results)
+        grow = {k: (getattr(f, k), np.full(K - K0, -1, getattr(f, k).dtype))
+                for k in ("child", "level", "ix", "iy")}
+        node = {k: np.concatenate(v) for k, v in grow.items()}
+        node["corner"] = np.concatenate([f.corner, np.full((K - K0, 4), -1, np.int64)])
+        node["dir_err"] = np.concatenate([self.dir_err, np.full(K - K0, np.nan, np.float32)])
+        node["dir_flags"] = np.concatenate([self.dir_flags, np.zeros(K - K0, np.uint8)])
+        smp = {k: np.concatenate([getattr(self.samples, k),
+                                  np.zeros((S - S0,) + getattr(self.samples, k).shape[1:],
+                                           getattr(self.samples, k).dtype)])
+               for k in SAMPLE_FIELDS}
+        ex = {k: [v] for k, v in self.ex.items()}
+        for i, (block, r) in enumerate(zip(blocks, results)):
+            nmap = np.arange(len(r["level"])) + nshift[i, r["level"]]
+            smap = np.arange(len(r["patch"])) + np.repeat(sshift[i], r["sample_counts"])
+            for k in ("level", "ix", "iy", "dir_err", "dir_flags"):
+                node[k][nmap] = r[k]
+            node["child"][nmap] = np.where(r["child"] >= 0, nmap[r["child"]], -1)
+            node["corner"][nmap] = np.where(r["corner"] >= 0, smap[r["corner"]], -1)
+            f.root[block] = nmap[r["root"]]
+            for k in SAMPLE_FIELDS:
+                smp[k][smap] = r[k]
+            ex["ex_node"].append(nmap[r["ex_node"]])
+            ex["ex_ids"].append(smap[r["ex_ids"]])
+            for k in ("ex_kind", "ex_pos", "ex_corner"):
+                ex[k].append(r[k])
+            self.tracer.rays += int(r["rays"])
+            self.remote_cpu_s += float(r["cpu_s"])
+        for k in ("child", "level", "ix", "iy", "corner"):
+            setattr(f, k, node[k])
+        self.dir_err, self.dir_flags = node["dir_err"], node["dir_flags"]
+        self.samples = Samples(**smp)
+        self.ex = {k: np.concatenate(v) for k, v in ex.items()}
+        order = np.argsort(self.ex["ex_node"])
+        self.ex = {k: v[order] for k, v in self.ex.items()}
 
     def _record(self, nodes, err, flags):
         """Store the measured error and flags of direction ``nodes`` (arrays grown to the
@@ -530,6 +645,37 @@ class _Baker:
                             "extra_cells": int(len(self.ex["ex_node"]))})
 
 
+def bake_shard(st, params: BakeParams, task: dict) -> dict:
+    """Bake one shard's direction trees (``_Baker._shard_task``) in this process, one core: the
+    cluster workers' work. Returns plain arrays: the forest's nodes (level-major: ``node_counts``
+    per level), ``root`` per tree, the samples (stage-major: ``sample_counts`` per stage), the
+    extra samples, ``rays`` traced and ``cpu_s`` (this thread's CPU seconds)."""
+    c0 = time.thread_time()
+    b = _Baker(st, params, _Progress(None, 1, params.direction_depth, params.search_steps),
+               None, 1)
+    b.vp_pos, b.vp_face, b.rect = task["vp_pos"], task["vp_face"], task["rect"]
+    b.dirf = Forest.empty(DOMAIN[b.vp_face].reshape(-1, 4))
+    b._bake_directions(task["trees"])
+    b._record(np.zeros(0, np.int64), np.float32(0), np.uint8(0))
+    f = b.dirf
+    return {"level": f.level, "ix": f.ix, "iy": f.iy, "child": f.child, "corner": f.corner,
+            "root": f.root[task["trees"]], "dir_err": b.dir_err, "dir_flags": b.dir_flags,
+            "node_counts": np.bincount(f.level, minlength=b.M + 1),
+            "sample_counts": b.stages.count, "rays": b.tracer.rays,
+            "cpu_s": time.thread_time() - c0,
+            **{k: getattr(b.samples, k) for k in SAMPLE_FIELDS}, **b.ex}
+
+
+def _block_shifts(counts, base):
+    """(n, k) id shifts for n shards' blocks of k keys (``counts[s, j]`` items of key j in shard
+    s, each shard's items key-major): the merged order is key-major, then shard, so item i of
+    shard s with key j gets id ``base + i + shift[s, j]``."""
+    key_start = np.concatenate([[0], np.cumsum(counts.sum(0))[:-1]])
+    shard_off = np.cumsum(counts, axis=0) - counts
+    local_start = np.cumsum(counts, axis=1) - counts
+    return base + key_start[None] + shard_off - local_start
+
+
 def _take(s: Samples, idx) -> Samples:
     return Samples(**{k: getattr(s, k)[idx] for k in ("out_o", "out_d", "point", "normal",
                                                       "patch", "null", "tree")})
@@ -624,8 +770,9 @@ def _slots_seeing(vp_pos, vface, lo, hi):
     return out
 
 
-def _extras(dirf, leaves, samples, class_of, trace, uv_of, tree_of, M, steps):
-    """Extra samples of two-class leaves. Corner slots c0..c3 = (0,0), (1,0), (0,1), (1,1);
+def _extras(dirf, leaves, samples, class_of, trace, uv_of, tree_of, M, steps, add, stage):
+    """Extra samples of two-class leaves, appended by ``add(samples, stages)`` with
+    ``stage(step, leaf level)``. Corner slots c0..c3 = (0,0), (1,0), (0,1), (1,1);
     edges are searched from a corner of one class towards its neighbour of the other class.
 
     one-interpolant (kind 1): lone corner L; v1 on the edge L->(L^1) (x edge), v2 on L->(L^2)
@@ -699,7 +846,7 @@ def _extras(dirf, leaves, samples, class_of, trace, uv_of, tree_of, M, steps):
     # keep only the probes that ended as bracket ends
     ends = np.concatenate([lo_s, hi_s], axis=1)
     used, inv = np.unique(-1 - ends[ends < 0], return_inverse=True)
-    new = samples.extend(_take(probes, used))
+    new = add(_take(probes, used), stage(used // max(2 * E, 1), dirf.level[leaves[(used % max(2 * E, 1)) // 2]]))
     ends[ends < 0] = new[inv.ravel()]
     lo_s, hi_s = ends[:, :2], ends[:, 2:]
     # local cell coordinates of the bracket ends
