@@ -15,7 +15,7 @@ $(BIN)/python:
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 $(STAMP): $(BIN)/python pyproject.toml
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python -m pip install --quiet -e '.[test,cluster]'
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -35,14 +35,15 @@ demo: $(STAMP)
 	$(BIN)/riray demo --out demo_out
 
 # Core must run on numpy 1.26 (what Blender bundles; the bpy wheel pins it in .venv) and on
-# current numpy: the core tests run again in a second, bpy-free environment with numpy 2.
+# current numpy: the core tests run again in a second, bpy-free environment with numpy 2. Both
+# environments have the cluster extra (Dask), so the sharded-bake tests run a real LocalCluster.
 NP2      := .venv-numpy2
 NP2STAMP := $(NP2)/.installed
 
 $(NP2STAMP): pyproject.toml
 	$(PYTHON) -m venv $(NP2)
 	$(NP2)/bin/python -m pip install --quiet --upgrade pip
-	$(NP2)/bin/python -m pip install --quiet -e '.[test]' 'numpy>=2'
+	$(NP2)/bin/python -m pip install --quiet -e '.[test,cluster]' 'numpy>=2'
 	touch $(NP2STAMP)
 
 # The add-on tests also run on the oldest supported Blender, 4.2 LTS: the bpy 4.2.x wheel in its
