@@ -320,6 +320,11 @@ class TreeQuery:
         with clock("decide"):
             loc, set_of, pc = loc.take(go), set_of[go], pc[go]
             m = len(loc)
+            # only the sets these rays use (all-miss sets hold many rays, answered already)
+            keep = np.zeros(len(s_leaf), bool)
+            keep[set_of] = True
+            set_of = (np.cumsum(keep) - 1)[set_of]
+            s_leaf, s_ids, s_cls, s_trees = (a[keep] for a in (s_leaf, s_ids, s_cls, s_trees))
             items = SetItems.of(tree, tab, s_leaf, s_ids, s_trees)
             unit_of, ufirst = group_rows(np.stack([set_of, pc], axis=1))
             u_set, u_pc = set_of[ufirst], pc[ufirst]
