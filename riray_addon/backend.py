@@ -3,7 +3,7 @@ Blender *and* in the bake worker process.
 
 The add-on only ever calls the functions below:
 
-    bake_tree(scene, params, progress, cancel) -> RITree          (worker process)
+    bake_tree(scene, params, progress, cancel, scheduler) -> RITree   (worker process)
     save_tree(tree, path, meta) / read_header(path) / load_tree(path)
     estimate_bake(scene, params) -> {"time_s", "bytes", "rays"}
     tree_object_fn(scene_tracer, tree, header, options) -> object_fn   (engine)
@@ -48,8 +48,25 @@ def bake_params(params: dict) -> ritree.BakeParams:
     return ritree.BakeParams(**{k: v for k, v in params.items() if k in names}).validate()
 
 
-def bake_tree(scene, params: dict, progress, cancel):
-    """Bake the RI-Tree of ``scene.object`` (runs in the worker process)."""
+def bake_tree(scene, params: dict, progress, cancel, scheduler: str = ""):
+    """Bake the RI-Tree of ``scene.object`` (runs in the worker process); on the Dask cluster
+    at ``scheduler`` (an address or local:N, core/cluster.py) where one is given."""
+    cluster = None
+    if scheduler:
+        from ..core.cluster import connect
+        progress(0.0, f"connecting to {scheduler}")
+        cluster = connect(scheduler)
+        dash = cluster.dashboard
+        progress(0.0, f"Dask scheduler {cluster.address}, {cluster.threads()} worker threads"
+                 + (f", dashboard {dash}" if dash else ""))
+    try:
+        return _bake(scene, params, progress, cancel, cluster)
+    finally:
+        if cluster is not None:
+            cluster.close()
+
+
+def _bake(scene, params, progress, cancel, cluster):
     st = SceneTracer(scene)
     bp = bake_params(params)
     region = None
@@ -57,7 +74,8 @@ def bake_tree(scene, params: dict, progress, cancel):
         region = region_for_cameras(st, bp, scene.cameras, int(params["width"]),
                                     int(params["height"]))
     try:
-        return ritree_bake.bake(st, bp, region, progress=progress, cancel=cancel)
+        return ritree_bake.bake(st, bp, region, progress=progress, cancel=cancel,
+                                cluster=cluster)
     except ritree_bake.BakeCancelled as exc:
         raise BakeCancelled() from exc
 

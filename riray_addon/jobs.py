@@ -52,7 +52,9 @@ class BakeJob:
         self.tmp_output = ""
 
     # ------------------------------------------------------------------ lifecycle
-    def start(self, scene, params: dict, meta: dict) -> "BakeJob":
+    def start(self, scene, params: dict, meta: dict, scheduler: str = "") -> "BakeJob":
+        """Start the worker; ``scheduler``: a Dask scheduler address or local:N to bake on
+        (core/cluster.py), "" to bake in the worker's own processes."""
         self.job_dir = tempfile.mkdtemp(prefix="riray_bake_")
         folder = os.path.dirname(os.path.abspath(self.cache_path))
         os.makedirs(folder, exist_ok=True)
@@ -60,7 +62,7 @@ class BakeJob:
         save_scene(scene, os.path.join(self.job_dir, "scene.json"))
         with open(os.path.join(self.job_dir, "job.json"), "w", encoding="utf-8") as fh:
             json.dump({"scene": "scene.json", "params": params, "output": self.tmp_output,
-                       "meta": meta}, fh, default=float)
+                       "meta": meta, "scheduler": scheduler}, fh, default=float)
         log = open(os.path.join(self.job_dir, "worker.log"), "wb")
         try:
             self.proc = subprocess.Popen([python_executable(), WORKER, self.job_dir],

@@ -21,7 +21,7 @@ from ..core.scene.io import save_scene
 from . import backend, cache, compat
 from .export import export_camera, export_scene, object_fingerprint
 from .jobs import BakeJob, format_bytes, format_duration
-from .properties import BAKE_KEYS, QUERY_KEYS, bake_params
+from .properties import BAKE_KEYS, QUERY_KEYS, bake_params, scheduler_address
 from .report import ExportError, Report
 
 JOBS: dict[str, BakeJob] = {}      # object name -> its current / last bake job
@@ -127,7 +127,7 @@ def start_bake(context, obj, report: Report | None = None) -> BakeJob:
     if context.scene.riray.target is None:
         context.scene.riray.target = obj
     try:
-        job = BakeJob(obj.name, path).start(scene, params, meta)
+        job = BakeJob(obj.name, path).start(scene, params, meta, scheduler_address(context))
     except OSError as exc:
         raise ExportError(f"{obj.name}: cannot start the bake: {exc}") from None
     JOBS[obj.name] = job

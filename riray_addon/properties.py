@@ -215,8 +215,33 @@ class RIRAY_PG_scene(bpy.types.PropertyGroup):
                                         "the null ray")
 
 
+# The add-on's id in Blender's preferences: the extension package (this package's parent).
+ADDON_ID = __package__.rpartition(".")[0]
+
+
+class RIRAY_AP_preferences(bpy.types.AddonPreferences):
+    """Add-on preferences (saved with Blender's preferences, not in the .blend)."""
+    bl_idname = ADDON_ID
+
+    scheduler: StringProperty(
+        name="Scheduler address", default="",
+        description="Bake on a Dask cluster: a running scheduler's address (tcp://host:8786) or "
+                    "local:N (N worker processes on this machine). Empty: bake here. Needs Dask "
+                    "in the bake worker's Python and riray[cluster] on every worker "
+                    "(docs/cluster.md)")
+
+    def draw(self, _context):
+        self.layout.prop(self, "scheduler")
+
+
+def scheduler_address(context) -> str:
+    """The preference's scheduler address, stripped ("" where the add-on has no preferences)."""
+    addon = context.preferences.addons.get(ADDON_ID)
+    return addon.preferences.scheduler.strip() if addon and addon.preferences else ""
+
+
 CLASSES = (RIRAY_PG_spline_group, RIRAY_PG_object, RIRAY_PG_material, RIRAY_PG_world,
-           RIRAY_PG_view_layer, RIRAY_PG_scene)
+           RIRAY_PG_view_layer, RIRAY_PG_scene, RIRAY_AP_preferences)
 OWNERS = ((bpy.types.Scene, RIRAY_PG_scene), (bpy.types.Object, RIRAY_PG_object),
           (bpy.types.Material, RIRAY_PG_material), (bpy.types.World, RIRAY_PG_world),
           (bpy.types.ViewLayer, RIRAY_PG_view_layer))

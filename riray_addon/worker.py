@@ -3,7 +3,7 @@ Python that imported the bpy module). Never imports bpy; never pickles.
 
 JOB_DIR holds (written by riray_addon.jobs in Blender):
   job.json       {"scene": "scene.json", "params": {...}, "output": "<cache>.tmp<pid>",
-                  "meta": {...}}
+                  "meta": {...}, "scheduler": "" | Dask scheduler address | "local:N"}
   scene.json     the core scene (object + cameras), riray JSON scene format
 The worker writes:
   progress.json  {"fraction", "message", "time", "eta"} (atomically replaced, at most every
@@ -87,7 +87,8 @@ def run(job_dir: str) -> int:
         io = import_module(f"{PKG}.core.scene.io")
         scene = io.load_scene(os.path.join(job_dir, job["scene"]))
         progress(0.0, "starting")
-        tree = backend.bake_tree(scene, job["params"], progress, cancel)
+        tree = backend.bake_tree(scene, job["params"], progress, cancel,
+                                 job.get("scheduler", ""))
         if cancel():
             raise backend.BakeCancelled()
         meta = dict(job.get("meta", {}))
