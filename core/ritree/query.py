@@ -242,7 +242,7 @@ class TreeQuery:
         # load-time work, done once (and before any fork, so worker processes share it):
         # decoded samples, dense leaf tables, answerable-leaf flags
         self.table = tree.table
-        tree.vp_locator, tree.dir_locator, tree.leaf_ok
+        tree.vp_locator, tree.dir_locator, tree.leaf_ok, tree.leaf_sampled, tree.cell_rect
 
     def __call__(self, o, d, tmax=None):
         """(ObjectRays, answers (N,), why (N,), stats) for rays o, d (unit). ``stats`` holds
