@@ -1,12 +1,14 @@
 """Plots of a ``riray bench`` run (PNG, matplotlib with the Agg backend, imported lazily: the
 engine never needs it; ``pip install 'riray[bench]'``).
 
-- ``pareto.png``: error versus render time, one column per swept scene: mean angular error of
-  the interpolated output rays (top) and image PSNR against the exact render (bottom) versus
-  the interpolated frame's object-only time relative to the exact render's in the same pass
-  (the ratio cancels the load of a shared machine, which single sweep passes do not); every
-  sweep point, the Pareto front (nothing else is both faster and more accurate) joined, the
-  exact render at 1 dashed.
+- ``pareto.png``: error versus render time, one column per scene (its close view): mean and
+  p99 angular error of the interpolated output rays and image PSNR against the exact render
+  versus the interpolated frame's object-only time relative to the exact render's in the
+  same pass (the ratio cancels the load of a shared machine, which single sweep passes do
+  not); every sweep point, the render-time policies (angle threshold, baked-error tolerance,
+  tolerance with path identity) as curves and the raytree policy as a point, the Pareto
+  front (nothing else is both faster and more accurate) joined, the exact render at 1
+  dashed.
 - ``bake_depth.png``: bake wall time and cache size versus direction depth, one line per
   scene and viewpoint depth.
 - ``amortized.png``: CPU seconds per frame versus frame count N, one panel per view: (bake +
@@ -20,7 +22,10 @@ import math
 from pathlib import Path
 
 SWEEP_MARKERS = {"depth": "o", "tolerance": "s", "angle": "^", "distance": "v",
-                 "extrapolation": "D", "max_error": "P", "path": "X", "table": "*"}
+                 "extrapolation": "D", "max_error": "P", "path": "X", "raytree": "h",
+                 "table": "*"}
+# Sweeps drawn as curves (points joined in time order): the render-time policies compared.
+CURVES = ("angle", "max_error", "path")
 
 
 def _plt():
@@ -73,11 +78,12 @@ def plot_pareto(result, path):
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     if not scenes:
         return None
-    fig, axes = plt.subplots(2, len(scenes), figsize=(5.2 * len(scenes), 8.0), squeeze=False)
+    fig, axes = plt.subplots(3, len(scenes), figsize=(5.2 * len(scenes), 12.0), squeeze=False)
     for j, scene in enumerate(scenes):
         rs = [r for r in rows if r["scene"] == scene]
         for i, (key, label, lower_better) in enumerate(
                 (("angle_mean_deg", "mean angular error (deg)", True),
+                 ("angle_p99_deg", "p99 angular error (deg)", True),
                  ("psnr_db", "PSNR vs exact (dB)", False))):
             ax = axes[i][j]
             pts = []
@@ -89,8 +95,11 @@ def plot_pareto(result, path):
                 pts.append((1.0 / max(r["object_speedup"], 1e-9), v if lower_better else -v, r))
             for sweep in dict.fromkeys(p[2]["sweep"] for p in pts):
                 sel = [p for p in pts if p[2]["sweep"] == sweep]
-                ax.scatter([p[0] for p in sel], [p[1] if lower_better else -p[1] for p in sel],
-                           marker=SWEEP_MARKERS.get(sweep, "o"), alpha=0.75, label=sweep)
+                if sweep in CURVES:
+                    sel = sorted(sel, key=lambda p: p[0])
+                ax.plot([p[0] for p in sel], [p[1] if lower_better else -p[1] for p in sel],
+                        marker=SWEEP_MARKERS.get(sweep, "o"), alpha=0.75, label=sweep,
+                        ls="-" if sweep in CURVES else "none", lw=0.8)
             front = [pts[k] for k in pareto_front([(p[0], p[1]) for p in pts])]
             if front:
                 ax.plot([p[0] for p in front], [p[1] if lower_better else -p[1] for p in front],

@@ -336,8 +336,10 @@ def _n_steps(cfg):
     if cfg.sweeps:
         per = len(cfg.vp_depths) * len(cfg.dir_depths) * 2 + len(cfg.tolerances) * 2 \
             + len(cfg.angles) + len(cfg.distances) + len(cfg.extrapolations) \
-            + len(cfg.max_errors) + len(cfg.path_max_errors)
+            + len(cfg.max_errors) + len(cfg.path_max_errors) + 1
         n += per * len(cfg.sweep_scenes)
+        if cfg.sweep_view in cfg.views:
+            n += len(_policy_points(cfg)) * len(set(cfg.scenes) - set(cfg.sweep_scenes))
     return n
 
 
@@ -374,6 +376,10 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
                 r = rows["interp_angle"]
                 log(f"{name}/{view}: traced {r['rays_traced']}/{r['object_rays']}, object-only "
                     f"{rows['exact']['object_cpu_s']:.2f} -> {r['object_cpu_s']:.2f} s")
+                if cfg.sweeps and view == cfg.sweep_view and name not in cfg.sweep_scenes:
+                    # the policy curves of every scene's Pareto plot, on the table tree (the
+                    # swept scenes get theirs with their sweeps)
+                    sweeps += _policy_sweeps(cfg, name, st, cam, tree, brec, workers, log)
                 _drop_tree(tree, brec, cfg)
         if cfg.sweeps:
             for name in cfg.sweep_scenes:
@@ -409,6 +415,36 @@ def _drop_tree(tree, brec, cfg):
         Path(brec["tree_path"]).unlink(missing_ok=True)
 
 
+def _sweep_row(cfg, name, st, cam, sweep, tree, brec, opt, key, workers, log) -> dict:
+    """One sweep point: ``opt`` on ``tree`` against exact, interleaved (cfg.sweep_repeats)."""
+    r = measure_configs(st, tree, cam, cfg.size, {"x": opt}, cfg.sweep_repeats, workers)
+    x, e = _strip(r["x"]), _strip(r["exact"])
+    log(f"{name}/{cfg.sweep_view} {sweep} {key}: traced {x['traced_fraction']:.1%}, "
+        f"err {_err3(x)} deg, PSNR {x['psnr_db']:.1f} dB")
+    return {"scene": name, "view": cfg.sweep_view, "sweep": sweep, **_bake_cols(brec),
+            "policy": opt.policy, "angle": opt.angle_deg, "distance": opt.distance,
+            "extrapolation": opt.extrapolation, "max_error": opt.max_error_deg,
+            "path_identity": opt.path_identity, **x,
+            "exact_object_cpu_s": e["object_cpu_s"], "exact_total_cpu_s": e["total_cpu_s"]}
+
+
+# The render-time policies compared on every scene's Pareto plot (one tree, no re-bake).
+def _policy_points(cfg) -> list:
+    """(sweep, key, options): the angle threshold, the baked-error tolerance (alone and with
+    path identity) and the raytree policy."""
+    return ([("angle", f"{a}", QueryOptions(angle_deg=a)) for a in cfg.angles]
+            + [("max_error", f"{t}", QueryOptions(angle_deg=None, max_error_deg=t))
+               for t in cfg.max_errors]
+            + [("path", f"{t}", QueryOptions(angle_deg=None, max_error_deg=t,
+                                             path_identity=True)) for t in cfg.path_max_errors]
+            + [("raytree", "Bala et al.", QueryOptions(policy="raytree", angle_deg=None))])
+
+
+def _policy_sweeps(cfg, name, st, cam, tree, brec, workers, log) -> list:
+    return [_sweep_row(cfg, name, st, cam, sweep, tree, brec, opt, key, workers, log)
+            for sweep, key, opt in _policy_points(cfg)]
+
+
 def _sweep_scene(cfg, name, workers, tree_dir, log) -> list:
     scene = build(name)
     st = SceneTracer(scene)
@@ -419,16 +455,7 @@ def _sweep_scene(cfg, name, workers, tree_dir, log) -> list:
     base_tree = None
 
     def record(sweep, tree, brec, opt, key):
-        nonlocal rows
-        r = measure_configs(st, tree, cam, cfg.size, {"x": opt}, cfg.sweep_repeats, workers)
-        x, e = _strip(r["x"]), _strip(r["exact"])
-        rows.append({"scene": name, "view": cfg.sweep_view, "sweep": sweep, **_bake_cols(brec),
-                     "policy": opt.policy, "angle": opt.angle_deg, "distance": opt.distance,
-                     "extrapolation": opt.extrapolation, "max_error": opt.max_error_deg,
-                     "path_identity": opt.path_identity, **x,
-                     "exact_object_cpu_s": e["object_cpu_s"], "exact_total_cpu_s": e["total_cpu_s"]})
-        log(f"{name}/{cfg.sweep_view} {sweep} {key}: traced {x['traced_fraction']:.1%}, "
-            f"err {_err3(x)} deg, PSNR {x['psnr_db']:.1f} dB")
+        rows.append(_sweep_row(cfg, name, st, cam, sweep, tree, brec, opt, key, workers, log))
 
     def baked(vp, dd, tol):
         tree, brec = bake_view(st, scene, cam, cfg.size, cfg.bake_params(vp, dd, tol), workers,
@@ -459,19 +486,13 @@ def _sweep_scene(cfg, name, workers, tree_dir, log) -> list:
     if base_tree is None:
         base_tree = baked(*base)
     tree, brec = base_tree
-    for a in cfg.angles:
-        record("angle", tree, brec, QueryOptions(angle_deg=a), f"{a}")
     for dist in cfg.distances:
         record("distance", tree, brec, QueryOptions(angle_deg=None, distance=dist),
                f"{dist}")
     for ex in cfg.extrapolations:
         record("extrapolation", tree, brec, QueryOptions(angle_deg=cfg.angle, extrapolation=ex),
                f"{ex}")
-    for t in cfg.max_errors:
-        record("max_error", tree, brec, QueryOptions(angle_deg=None, max_error_deg=t), f"{t}")
-    for t in cfg.path_max_errors:
-        record("path", tree, brec, QueryOptions(angle_deg=None, max_error_deg=t,
-                                                path_identity=True), f"{t}")
+    rows += _policy_sweeps(cfg, name, st, cam, tree, brec, workers, log)
     _drop_tree(tree, brec, cfg)
     return rows
 

@@ -86,14 +86,31 @@ def test_tables_consistent(bench):
 def test_sweeps_consistent(bench):
     rows = _csv(bench / "sweeps.csv")
     q = BenchConfig(**config_from_args(quick=True).__dict__)
-    kinds = [r["sweep"] for r in rows]
-    assert kinds.count("depth") == len(q.vp_depths) * len(q.dir_depths)
-    assert kinds.count("tolerance") == len(q.tolerances)
-    assert kinds.count("angle") == len(q.angles)
-    assert kinds.count("distance") == len(q.distances)
-    assert kinds.count("extrapolation") == len(q.extrapolations)
-    assert kinds.count("max_error") == len(q.max_errors)
-    assert kinds.count("path") == len(q.path_max_errors)
+    assert {r["scene"] for r in rows} == {"glass_sphere", "vase_mirror"}
+    for scene in ("glass_sphere", "vase_mirror"):
+        kinds = [r["sweep"] for r in rows if r["scene"] == scene]
+        swept = scene in q.sweep_scenes          # depth and bake sweeps on the swept scenes only
+        assert kinds.count("depth") == swept * len(q.vp_depths) * len(q.dir_depths)
+        assert kinds.count("tolerance") == swept * len(q.tolerances)
+        assert kinds.count("distance") == swept * len(q.distances)
+        assert kinds.count("extrapolation") == swept * len(q.extrapolations)
+        # every scene's Pareto plot compares the render-time policies on one tree
+        assert kinds.count("angle") == len(q.angles)
+        assert kinds.count("max_error") == len(q.max_errors)
+        assert kinds.count("path") == len(q.path_max_errors)
+        assert kinds.count("raytree") == 1
+        rs = [r for r in rows if r["scene"] == scene]
+        # without any threshold fewer rays are traced than with the tightest angle threshold
+        ang = {r["angle"]: int(r["rays_traced"]) for r in rs if r["sweep"] == "angle"}
+        assert ang[""] <= min(v for k, v in ang.items() if k)
+        # a tighter --max-error never interpolates a worse ray, and traces at least as many
+        tol = sorted(((float(r["max_error"]), r) for r in rs if r["sweep"] == "max_error"),
+                     key=lambda x: -x[0])
+        for (_, a), (_, b) in zip(tol, tol[1:]):
+            assert float(b["angle_max_deg"] or 0) <= float(a["angle_max_deg"] or 0)
+            assert int(b["rays_traced"]) >= int(a["rays_traced"])
+        # the policy points share one tree
+        assert len({r["tree_samples"] for r in rs if r["sweep"] in ("angle", "raytree")}) == 1
     for r in rows:
         assert float(r["bake_s"]) > 0 and int(r["cache_bytes"]) > 0
         assert 0.0 <= float(r["traced_fraction"]) <= 1.0
@@ -102,15 +119,6 @@ def test_sweeps_consistent(bench):
     for vp in q.vp_depths:
         s = [int(r["tree_samples"]) for r in depth if int(r["viewpoint_depth"]) == vp]
         assert s == sorted(s)
-    # without any threshold fewer rays are traced than with the tightest angle threshold
-    ang = {r["angle"]: int(r["rays_traced"]) for r in rows if r["sweep"] == "angle"}
-    assert ang[""] <= min(v for k, v in ang.items() if k)
-    # a tighter --max-error never interpolates a worse ray, and traces at least as many
-    tol = sorted(((float(r["max_error"]), r) for r in rows if r["sweep"] == "max_error"),
-                 key=lambda x: -x[0])
-    for (_, a), (_, b) in zip(tol, tol[1:]):
-        assert float(b["angle_max_deg"] or 0) <= float(a["angle_max_deg"] or 0)
-        assert int(b["rays_traced"]) >= int(a["rays_traced"])
 
 
 def test_pareto_front():
