@@ -99,7 +99,9 @@ def plot_pareto(result, path):
                     sel = sorted(sel, key=lambda p: p[0])
                 ax.plot([p[0] for p in sel], [p[1] if lower_better else -p[1] for p in sel],
                         marker=SWEEP_MARKERS.get(sweep, "o"), alpha=0.75, label=sweep,
-                        ls="-" if sweep in CURVES else "none", lw=0.8)
+                        ls="-" if sweep in CURVES else "none", lw=0.8,
+                        color=f"C{list(SWEEP_MARKERS).index(sweep) % 10}"
+                        if sweep in SWEEP_MARKERS else None)
             front = [pts[k] for k in pareto_front([(p[0], p[1]) for p in pts])]
             if front:
                 ax.plot([p[0] for p in front], [p[1] if lower_better else -p[1] for p in front],
