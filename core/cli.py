@@ -52,12 +52,14 @@ def _query_options(args):
 
 
 def _tree_opts(p):
+    from .ritree.query import DEFAULT_MAX_ERROR_DEG
     p.add_argument("--policy", choices=("ri", "raytree"), default="ri",
                    help="ri: the paper's heuristics; raytree: Bala et al.'s identical-ray-tree rule")
     p.add_argument("--extrapolation", type=float, default=None, metavar="T",
                    help="allow extrapolation up to barycentric distance T (default: off)")
-    p.add_argument("--angle", type=float, default=20.0, metavar="DEG",
-                   help="pairwise angle threshold between interpolants in degrees (-1: off)")
+    p.add_argument("--angle", type=float, default=-1.0, metavar="DEG",
+                   help="the paper's pairwise angle threshold between interpolants in degrees "
+                   "(-1: off, the default; the paper used 20)")
     p.add_argument("--distance", type=float, default=-1.0, metavar="REL",
                    help="pairwise output-origin distance threshold, relative to the object's "
                    "box diagonal (-1: off, the default)")
@@ -68,10 +70,11 @@ def _tree_opts(p):
                    help="with --threshold-on samples: compare the samples of all direction "
                    "leaves (the default) or only of leaves at the maximum depth (a shallower "
                    "leaf passed the bake's midpoint test; fewer mirror rays traced)")
-    p.add_argument("--max-error", type=float, default=-1.0, metavar="DEG",
+    p.add_argument("--max-error", type=float, default=DEFAULT_MAX_ERROR_DEG, metavar="DEG",
                    help="interpolate a ray only where the errors the bake measured in everything "
                    "it blends (its four direction leaves and its viewpoint cell) are at most DEG "
-                   "degrees; trace the others (-1: off, the default; no re-bake needed)")
+                   f"degrees; trace the others (default {DEFAULT_MAX_ERROR_DEG:g}; -1: off; no "
+                   "re-bake needed)")
     p.add_argument("--path-identity", action="store_true",
                    help="trace a ray whose usable samples differ in ray-tree hash (event "
                    "sequence) or whose leaves / viewpoint cell the bake saw change path")

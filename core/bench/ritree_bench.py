@@ -54,17 +54,24 @@ from ..render.interpolated import psnr, query_own_cpu
 from ..ritree import tree as ritree
 from ..ritree.bake import bake
 from ..ritree.interp import angle_between
-from ..ritree.query import (EXTRA_S, EXTRAPOLATED_S, FULL, OUTSIDE, TRACED, QueryOptions,
+from ..ritree.query import (DEFAULT_MAX_ERROR_DEG, EXTRA_S, EXTRAPOLATED_S, FULL, OUTSIDE,
+                            TRACED, QueryOptions,
                             TreeQuery)
 from ..ritree.region import region_for_cameras
 from ..scene.samples import SAMPLES, build
 from .exact_bench import machine
 
 VIEWS = ("far", "close", "zoom")
-ROWS = ("exact", "interp", "interp_angle", "raytree")
+ROWS = ("exact", "interp", "interp_angle", "interp_tol", "raytree")
 ROW_LABELS = {"exact": "ray traced", "interp": "interpolated (no angle threshold)",
               "interp_angle": "interpolated (angle threshold {angle:g} deg)",
+              "interp_tol": f"interpolated (default: max error {DEFAULT_MAX_ERROR_DEG:g} deg)",
               "raytree": "raytree policy (Bala et al.)"}
+
+
+def paper(**kw) -> QueryOptions:
+    """The paper's rules with options ``kw``: no baked-error tolerance."""
+    return QueryOptions(max_error_deg=None, **kw)
 SAMPLES_PER_LOOKUP = 16      # a query ray reads 4 viewpoints x 4 direction-cell corners
 SAMPLES_PER_EXTRA = 2        # ... and at least 2 extra samples when a leaf's extras answer it
 TRACER_KEYS = ("pairs", "newton_iters", "fallback_pairs")
@@ -326,9 +333,10 @@ class _Log:
 
 
 def _table_configs(cfg):
-    return {"interp": QueryOptions(angle_deg=None),
-            "interp_angle": QueryOptions(angle_deg=cfg.angle),
-            "raytree": QueryOptions(policy="raytree", angle_deg=None)}
+    return {"interp": paper(angle_deg=None),
+            "interp_angle": paper(angle_deg=cfg.angle),
+            "interp_tol": QueryOptions(),
+            "raytree": paper(policy="raytree", angle_deg=None)}
 
 
 def _n_steps(cfg):
@@ -432,12 +440,12 @@ def _sweep_row(cfg, name, st, cam, sweep, tree, brec, opt, key, workers, log) ->
 def _policy_points(cfg) -> list:
     """(sweep, key, options): the angle threshold, the baked-error tolerance (alone and with
     path identity) and the raytree policy."""
-    return ([("angle", f"{a}", QueryOptions(angle_deg=a)) for a in cfg.angles]
+    return ([("angle", f"{a}", paper(angle_deg=a)) for a in cfg.angles]
             + [("max_error", f"{t}", QueryOptions(angle_deg=None, max_error_deg=t))
                for t in cfg.max_errors]
             + [("path", f"{t}", QueryOptions(angle_deg=None, max_error_deg=t,
                                              path_identity=True)) for t in cfg.path_max_errors]
-            + [("raytree", "Bala et al.", QueryOptions(policy="raytree", angle_deg=None))])
+            + [("raytree", "Bala et al.", paper(policy="raytree", angle_deg=None))])
 
 
 def _policy_sweeps(cfg, name, st, cam, tree, brec, workers, log) -> list:
@@ -451,7 +459,7 @@ def _sweep_scene(cfg, name, workers, tree_dir, log) -> list:
     cam = scene.camera(cfg.sweep_view)
     rows = []
     base = (cfg.viewpoint_depth, cfg.direction_depth, cfg.tolerance)
-    default = QueryOptions(angle_deg=cfg.angle)
+    default = paper(angle_deg=cfg.angle)
     base_tree = None
 
     def record(sweep, tree, brec, opt, key):
@@ -487,10 +495,10 @@ def _sweep_scene(cfg, name, workers, tree_dir, log) -> list:
         base_tree = baked(*base)
     tree, brec = base_tree
     for dist in cfg.distances:
-        record("distance", tree, brec, QueryOptions(angle_deg=None, distance=dist),
+        record("distance", tree, brec, paper(angle_deg=None, distance=dist),
                f"{dist}")
     for ex in cfg.extrapolations:
-        record("extrapolation", tree, brec, QueryOptions(angle_deg=cfg.angle, extrapolation=ex),
+        record("extrapolation", tree, brec, paper(angle_deg=cfg.angle, extrapolation=ex),
                f"{ex}")
     rows += _policy_sweeps(cfg, name, st, cam, tree, brec, workers, log)
     _drop_tree(tree, brec, cfg)
@@ -499,8 +507,8 @@ def _sweep_scene(cfg, name, workers, tree_dir, log) -> list:
 
 def amortization(tables) -> list:
     """Per table view and interpolated row ("interp": no angle threshold, "interp_angle": with
-    it): bake CPU seconds, per-frame total CPU seconds exact and interpolated, and the
-    break-even frame count N* = bake / (exact - interpolated), the smallest N for which bake + N
+    it, "interp_tol": the default tolerance): bake CPU seconds, per-frame total CPU seconds
+    exact and interpolated, and the break-even frame count N* = bake / (exact - interpolated), the smallest N for which bake + N
     interpolated frames cost no more than N exact frames (None where interpolation saves
     nothing per frame: it never pays)."""
     out = []
@@ -509,7 +517,7 @@ def amortization(tables) -> list:
         by.setdefault((r["scene"], r["view"]), {})[r["row"]] = r
     for (scene, view), rows in by.items():
         ex = rows["exact"]
-        for kind in ("interp", "interp_angle"):
+        for kind in ("interp", "interp_angle", "interp_tol"):
             it = rows[kind]
             saved = ex["total_cpu_s"] - it["total_cpu_s"]
             saved_o = ex["object_cpu_s"] - it["object_cpu_s"]
@@ -666,19 +674,20 @@ def tables_markdown(result) -> str:
     lines += ["**Bake and break-even** (CPU seconds per frame; N* = frames after which bake + N "
               "interpolated frames cost less than N exact ones)", "",
               "| scene | view | bake s (wall) | bake CPU s | cache MB | exact frame | interpolated "
-              "frame, no threshold | N* | interpolated frame, angle threshold | N* |",
-              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+              "frame, no threshold | N* | interpolated frame, angle threshold | N* | "
+              "interpolated frame, default tolerance | N* |",
+              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     cache = {(r["scene"], r["view"]): r["cache_bytes"] for r in tables}
     am = {(a["scene"], a["view"], a["row"]): a for a in result["amortization"]}
     for scene, view in dict.fromkeys((a["scene"], a["view"]) for a in result["amortization"]):
-        a, b = am[(scene, view, "interp")], am[(scene, view, "interp_angle")]
+        a, b, c = (am[(scene, view, k)] for k in ("interp", "interp_angle", "interp_tol"))
 
         def be(x):
             return "never" if x["break_even_frames"] is None else f"{x['break_even_frames']:,}"
         lines.append(f"| {scene} | {view} | {a['bake_s']:.1f} | {a['bake_cpu_s']:.1f} | "
                      f"{cache[(scene, view)] / 1e6:.2f} | {a['exact_frame_cpu_s']:.2f} | "
                      f"{a['interp_frame_cpu_s']:.2f} | {be(a)} | {b['interp_frame_cpu_s']:.2f} | "
-                     f"{be(b)} |")
+                     f"{be(b)} | {c['interp_frame_cpu_s']:.2f} | {be(c)} |")
     return "\n".join(lines)
 
 

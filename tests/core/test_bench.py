@@ -43,7 +43,7 @@ def test_outputs_exist(bench):
 def test_tables_consistent(bench):
     rows = _csv(bench / "tables.csv")
     res = json.loads((bench / "results.json").read_text())
-    assert len(rows) == len(res["tables"]) == 2 * len(ROWS)     # 2 scenes x 1 view x 4 rows
+    assert len(rows) == len(res["tables"]) == 2 * len(ROWS)     # 2 scenes x 1 view x 5 rows
     assert res["machine"]["cpu_count"] >= 1 and res["command"].startswith("riray bench --quick")
     by = {}
     for r in rows:
@@ -54,7 +54,7 @@ def test_tables_consistent(bench):
         ex = rs["exact"]
         assert int(ex["rays_traced"]) == int(ex["object_rays"]) > 0
         assert int(ex["samples_gathered"]) == 0 and int(ex["newton_iters"]) > 0
-        for kind in ("interp", "interp_angle", "raytree"):
+        for kind in ("interp", "interp_angle", "interp_tol", "raytree"):
             r = rs[kind]
             assert int(r["object_rays"]) == int(ex["object_rays"])      # the same camera rays
             assert int(r["rays_traced"]) <= int(ex["rays_traced"])

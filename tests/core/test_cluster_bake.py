@@ -256,3 +256,45 @@ def test_the_dashboard_is_printed_when_there_is_one(capsys, monkeypatch):
     err = capsys.readouterr().err
     assert err.startswith("dask: scheduler tcp://127.0.0.1:") and err.count("\n") == 1
     assert err.rstrip().endswith(", 1 worker threads, dashboard http://127.0.0.1:1/status")
+
+
+def test_a_lost_scheduler_fails_the_bake(st, tmp_path):
+    """A scheduler and a worker of their own (``dask scheduler`` / ``dask worker``); the
+    scheduler is killed after the first shard: the bake fails with a message, not a hang."""
+    info = tmp_path / "scheduler.json"
+    cli = [sys.executable, "-m", "distributed.cli."]
+    common = ["--no-dashboard", "--scheduler-file", str(info)]
+    procs = [subprocess.Popen(cli[:2] + [cli[2] + "dask_scheduler", "--host", "127.0.0.1",
+                                         "--port", "0", *common], stderr=subprocess.DEVNULL)]
+    try:
+        assert _until_file(info, 60)
+        procs.append(subprocess.Popen(cli[:2] + [cli[2] + "dask_worker", "--nthreads", "1",
+                                                 *common], stderr=subprocess.DEVNULL))
+        address = json.loads(info.read_text())["address"]
+        with dask.config.set({"distributed.comm.timeouts.connect": "2s"}):
+            c = C.connect(address)
+            seen = []
+
+            def progress(frac, msg):
+                seen.append(msg)
+                if len(seen) == 2:
+                    procs[0].kill()                            # the scheduler dies mid-bake
+            t0 = time.time()
+            with pytest.raises(C.ClusterError, match="Dask scheduler"):
+                _within(lambda: bake(st, BakeParams(viewpoint_depth=2, direction_depth=3,
+                                                    viewpoint_refine=0), cluster=c,
+                                     progress=progress), 120)
+            assert time.time() - t0 < 60
+            c.close()
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+
+
+def _until_file(path, seconds):
+    end = time.time() + seconds
+    while not path.exists() and time.time() < end:
+        time.sleep(0.1)
+    time.sleep(0.2)                                            # written whole
+    return path.exists()

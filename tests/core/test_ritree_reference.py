@@ -44,6 +44,12 @@ from riray.ritree.region import region_for_cameras
 from riray.ritree.tree import BakeParams
 from riray.scene.samples import build
 
+
+def paper(**kw) -> QueryOptions:
+    """The paper's rules (no baked-error tolerance) with options ``kw``."""
+    return QueryOptions(max_error_deg=None, **kw)
+
+
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 
 # the helper module next to this file (pytest runs with --import-mode=importlib: tests/core is
@@ -62,20 +68,20 @@ SEED = 20240917
 
 # Query options (name -> QueryOptions) compared per case.
 OPTIONS = {
-    "angle_off": QueryOptions(angle_deg=None),
-    "angle20": QueryOptions(angle_deg=20.0),
-    "angle5": QueryOptions(angle_deg=5.0),
-    "distance": QueryOptions(angle_deg=None, distance=0.05),
-    "unverified": QueryOptions(angle_deg=20.0, threshold_leaves="unverified"),
-    "extrapolation": QueryOptions(angle_deg=None, extrapolation=0.25),
-    "extrapolation_angle20": QueryOptions(angle_deg=20.0, extrapolation=0.25),
-    "no_null": QueryOptions(angle_deg=None, null_interp=False),
-    "raytree": QueryOptions(policy="raytree"),
-    "intermediate": QueryOptions(angle_deg=20.0, threshold_on="intermediate"),
-    "intermediate_dist": QueryOptions(angle_deg=None, distance=0.05, threshold_on="intermediate"),
+    "angle_off": paper(angle_deg=None),
+    "angle20": paper(angle_deg=20.0),
+    "angle5": paper(angle_deg=5.0),
+    "distance": paper(angle_deg=None, distance=0.05),
+    "unverified": paper(angle_deg=20.0, threshold_leaves="unverified"),
+    "extrapolation": paper(angle_deg=None, extrapolation=0.25),
+    "extrapolation_angle20": paper(angle_deg=20.0, extrapolation=0.25),
+    "no_null": paper(angle_deg=None, null_interp=False),
+    "raytree": paper(policy="raytree"),
+    "intermediate": paper(angle_deg=20.0, threshold_on="intermediate"),
+    "intermediate_dist": paper(angle_deg=None, distance=0.05, threshold_on="intermediate"),
     "tolerance": QueryOptions(angle_deg=None, max_error_deg=1.0),
     "tolerance_angle20": QueryOptions(angle_deg=20.0, max_error_deg=4.0),
-    "path": QueryOptions(angle_deg=None, path_identity=True),
+    "path": paper(angle_deg=None, path_identity=True),
     "tolerance_path": QueryOptions(angle_deg=None, max_error_deg=2.0, path_identity=True),
 }
 

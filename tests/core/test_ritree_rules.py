@@ -30,6 +30,12 @@ from riray.ritree.query import (EXTRA_S, FULL, MISS, REDUCED, TRACED, WHY_CLASSE
 from riray.ritree.tree import BakeParams, RITree, Samples
 from riray.scene.model import ObjectMaterial, Patch, RenderSettings, Scene, SpecularObject
 
+
+def paper(**kw) -> QueryOptions:
+    """The paper's rules (no baked-error tolerance) with options ``kw``."""
+    return QueryOptions(max_error_deg=None, **kw)
+
+
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 
 BOX_LO, BOX_HI = np.array([-1.0, -1.0, -0.5]), np.array([1.0, 1.0, 0.5])
@@ -42,7 +48,7 @@ FIELD_DIR = np.array([1.0, 0.0, 0.0])       # sideways: never a reflection off z
 FIELD_TOL = 1e-5
 # Rays closer than this to a boundary of a rule's region (cell coordinates) may go either way.
 MARGIN = 1e-6
-OPTS = QueryOptions(angle_deg=None)         # the pairwise thresholds are not the rules here
+OPTS = paper(angle_deg=None)         # the pairwise thresholds are not the rules here
 
 
 def field(x, y, lx, ly):

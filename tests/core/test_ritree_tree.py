@@ -31,15 +31,23 @@ from riray.ritree.interp import angle_between
 from riray.ritree.locate import entry_points
 from riray.ritree.quadtree import Forest
 from riray.ritree.query import (EXTRAPOLATED_S, FULL, MISS, NULL_S, OUTSIDE, REDUCED, TRACED,
-                                WHY_BLEND, WHY_RAYTREE, WHY_THRESHOLD, WHY_USABLE, QueryOptions,
-                                TreeQuery)
+                                WHY_BLEND, WHY_RAYTREE, WHY_THRESHOLD, WHY_TOLERANCE, WHY_USABLE,
+                                QueryOptions, TreeQuery)
 from riray.ritree.region import Region
+
+from riray.ritree.tree import BakeParams, RITree, Samples
+from riray.scene.model import ObjectMaterial, Patch, RenderSettings, Scene, SpecularObject
+
+
+def paper(**kw) -> QueryOptions:
+    """The paper's rules (no baked-error tolerance) with options ``kw``."""
+    return QueryOptions(max_error_deg=None, **kw)
+
 
 # Interpolation exactness on affine ray maps (mirror, slab) is checked without the pairwise
 # angle threshold: its corners may legitimately differ a lot (coarse cells of an exact field).
-AFFINE_OPTS = QueryOptions(angle_deg=None)
-from riray.ritree.tree import BakeParams, RITree, Samples
-from riray.scene.model import ObjectMaterial, Patch, RenderSettings, Scene, SpecularObject
+AFFINE_OPTS = paper(angle_deg=None)
+
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 
@@ -591,7 +599,7 @@ def test_handmade_tree_interpolates_affine_fields(mirror):
     st, _ = mirror
     tree = handmade_tree(st, affine_values)
     o, d, al, be, lx, ly = handmade_queries(3000, 1)
-    res, ans, why, _ = TreeQuery(tree, st, QueryOptions(angle_deg=None))(o, d)
+    res, ans, why, _ = TreeQuery(tree, st, paper(angle_deg=None))(o, d)
     assert np.all(ans == FULL)
     X = np.stack([2 * al - 1, 2 * be - 1, 2 * lx - 1, 2 * ly - 1], 1)
     assert np.allclose(res.out_origin, X @ A_O + 0.1, atol=1e-6)
@@ -615,7 +623,7 @@ def test_null_samples_are_never_interpolants(mirror, case):
         null[[3, 7, 11, 15]] = True          # corner (1, 1) null in every DQ
     tree = handmade_tree(st, affine_values, null=null)
     o, d, al, be, lx, ly = handmade_queries(4000, 2)
-    res, ans, why, _ = TreeQuery(tree, st, QueryOptions(angle_deg=None))(o, d)
+    res, ans, why, _ = TreeQuery(tree, st, paper(angle_deg=None))(o, d)
     check_answers(res, ans, why)
     m = interpolated(ans)
     X = np.stack([2 * al - 1, 2 * be - 1, 2 * lx - 1, 2 * ly - 1], 1)
@@ -666,7 +674,7 @@ def test_null_rays_in_a_baked_tree(sphere_st):
     o, d = sphere_queries(tree, 1500, 4)
     ex = st.object_function(o, d)
     for null_interp in (False, True):
-        res, ans, why, _ = TreeQuery(tree, st, QueryOptions(null_interp=null_interp))(o, d)
+        res, ans, why, _ = TreeQuery(tree, st, paper(null_interp=null_interp))(o, d)
         check_answers(res, ans, why)
         assert not interpolated(ans).any()
         answered = (ans == TRACED) | (ans == OUTSIDE) | (ans == NULL_S)
@@ -691,7 +699,7 @@ def test_null_answer_needs_null_interpolants(mirror):
     null[:12] = True
     tree = handmade_tree(st, affine_values, null=null)
     o, d, al, be, lx, ly = handmade_queries(3000, 6)
-    res, ans, why, _ = TreeQuery(tree, st, QueryOptions(angle_deg=None))(o, d)
+    res, ans, why, _ = TreeQuery(tree, st, paper(angle_deg=None))(o, d)
     check_answers(res, ans, why)
     X = np.stack([2 * al - 1, 2 * be - 1, 2 * lx - 1, 2 * ly - 1], 1)
     inside = al + be < 1 - 1e-9
@@ -699,7 +707,7 @@ def test_null_answer_needs_null_interpolants(mirror):
     assert np.all(ans[inside] == NULL_S) and np.all(ans[outside] == TRACED)
     assert np.allclose(res.point[inside], (X @ A_P)[inside], atol=1e-6)
     assert np.all(res.out_dir[inside] == 0)
-    _, ans_p, why_p, _ = TreeQuery(tree, st, QueryOptions(angle_deg=None, null_interp=False))(o, d)
+    _, ans_p, why_p, _ = TreeQuery(tree, st, paper(angle_deg=None, null_interp=False))(o, d)
     assert np.all(ans_p == TRACED) and np.all(why_p == WHY_USABLE)
 
 
@@ -721,7 +729,7 @@ def test_angle_threshold_drops_an_outlying_corner(mirror):
 
     tree = handmade_tree(st, values)
     o, d, al, be, lx, ly = handmade_queries(4000, 7)
-    res, ans, why, _ = TreeQuery(tree, st, QueryOptions(angle_deg=20))(o, d)
+    res, ans, why, _ = TreeQuery(tree, st, paper(angle_deg=20))(o, d)
     check_answers(res, ans, why)
     margin = (np.abs(lx + ly - 1) > 1e-6) & (np.abs(al + be - 1) > 1e-6)
     dq0 = lx + ly < 1                      # triangle (0,0), (1,0), (0,1) of viewpoint 0's leaf
@@ -732,7 +740,7 @@ def test_angle_threshold_drops_an_outlying_corner(mirror):
     assert np.all(ans[m] == REDUCED)
     assert np.allclose(res.out_dir[m], E_DIR, atol=1e-6)
     assert np.all(why[margin & ~want] == WHY_THRESHOLD)
-    _, ans_off, _, _ = TreeQuery(tree, st, QueryOptions(angle_deg=None))(o, d)
+    _, ans_off, _, _ = TreeQuery(tree, st, paper(angle_deg=None))(o, d)
     assert np.all(ans_off == FULL)
 
 
@@ -747,7 +755,7 @@ def test_raytree_policy_handmade(mirror):
             hashes[rng.choice(16, trial, replace=False)] = rng.integers(0, 2 ** 32, trial,
                                                                         dtype=np.uint64)
         tree = handmade_tree(st, affine_values, hashes=hashes)
-        res, ans, why, _ = TreeQuery(tree, st, QueryOptions(policy="raytree"))(o, d)
+        res, ans, why, _ = TreeQuery(tree, st, paper(policy="raytree"))(o, d)
         check_answers(res, ans, why)
         if len(set(hashes.tolist())) == 1:
             assert np.all(ans == FULL)
@@ -757,7 +765,7 @@ def test_raytree_policy_handmade(mirror):
             assert np.all(ans == TRACED) and np.all(why == WHY_RAYTREE)
     # a null sample (same hash) also stops the raytree policy
     tree = handmade_tree(st, affine_values, null=np.eye(16, dtype=bool)[5])
-    _, ans, _, _ = TreeQuery(tree, st, QueryOptions(policy="raytree"))(o, d)
+    _, ans, _, _ = TreeQuery(tree, st, paper(policy="raytree"))(o, d)
     assert np.all(ans == TRACED)
 
 
@@ -783,7 +791,7 @@ def test_opposed_samples_are_traced_not_blended(mirror, opposed):
     d = unit(np.c_[u, rng.uniform(0.2, 0.9, n), -np.ones(n)])
     o = q - 0.3 * d
     for policy in ("ri", "raytree"):
-        res, ans, why, _ = TreeQuery(tree, st, QueryOptions(policy=policy, angle_deg=None))(o, d)
+        res, ans, why, _ = TreeQuery(tree, st, paper(policy=policy, angle_deg=None))(o, d)
         check_answers(res, ans, why)
         assert np.all(ans[u == 0] == TRACED) and np.all(why[u == 0] == WHY_BLEND), policy
         assert np.all(ans[u != 0] == FULL), policy
@@ -808,7 +816,7 @@ def sixteen_ids(tree, o, d):
 def test_raytree_policy_matches_sample_hashes(sphere_st, sphere_trees):
     tree = sphere_trees[4, 4]
     o, d = sphere_queries(tree, 3000, 9)
-    res, ans, why, _ = TreeQuery(tree, sphere_st, QueryOptions(policy="raytree"))(o, d)
+    res, ans, why, _ = TreeQuery(tree, sphere_st, paper(policy="raytree"))(o, d)
     ex = sphere_st.object_function(o, d)
     check_answers(res, ans, why)
     ids = sixteen_ids(tree, o, d)
@@ -987,8 +995,8 @@ def save_load(tree, path, mmap):
     return RITree.from_parts(header, arrays)
 
 
-CACHE_OPTS = (QueryOptions(), QueryOptions(policy="raytree"),
-              QueryOptions(extrapolation=0.5, angle_deg=None, distance=0.1))
+CACHE_OPTS = (paper(), paper(policy="raytree"),
+              paper(extrapolation=0.5, angle_deg=None, distance=0.1))
 
 
 def cache_queries(tree):
@@ -1049,13 +1057,13 @@ def test_threshold_on_intermediate_rays_vs_samples(mirror):
     st, tree = mirror
     o, d = mirror_queries(tree, 5000, 4)
     tiny = np.degrees(1e-6)
-    _, a_int, w_int, _ = TreeQuery(tree, st, QueryOptions(angle_deg=tiny,
+    _, a_int, w_int, _ = TreeQuery(tree, st, paper(angle_deg=tiny,
                                                           threshold_on="intermediate"))(o, d)
-    _, a_smp, w_smp, _ = TreeQuery(tree, st, QueryOptions(angle_deg=tiny))(o, d)
+    _, a_smp, w_smp, _ = TreeQuery(tree, st, paper(angle_deg=tiny))(o, d)
     assert interpolated(a_int).sum() > 500
     assert interpolated(a_smp).sum() == 0 and np.any(w_smp == WHY_THRESHOLD)
     with pytest.raises(ValueError, match="threshold_on"):
-        QueryOptions(threshold_on="pixels").validate()
+        paper(threshold_on="pixels").validate()
 
 
 def test_thresholds_spare_leaves_the_bake_verified(mirror):
@@ -1069,10 +1077,10 @@ def test_thresholds_spare_leaves_the_bake_verified(mirror):
     assert np.any(tree.dir_forest.level[leaves] < MIRROR_PARAMS.direction_depth)
     o, d = mirror_queries(tree, 5000, 5)
     tiny = np.degrees(1e-6)
-    spare = QueryOptions(angle_deg=tiny, threshold_leaves="unverified")
+    spare = paper(angle_deg=tiny, threshold_leaves="unverified")
     res, a, _, _ = TreeQuery(tree, st, spare)(o, d)
-    _, a_off, _, _ = TreeQuery(tree, st, QueryOptions(angle_deg=None))(o, d)
-    _, a_all, _, _ = TreeQuery(tree, st, QueryOptions(angle_deg=tiny))(o, d)
+    _, a_off, _, _ = TreeQuery(tree, st, paper(angle_deg=None))(o, d)
+    _, a_all, _, _ = TreeQuery(tree, st, paper(angle_deg=tiny))(o, d)
     ok = interpolated(a)
     assert ok.sum() > 200 and not np.any(ok & ~interpolated(a_off))
     assert interpolated(a_all).sum() == 0
@@ -1084,4 +1092,22 @@ def test_thresholds_spare_leaves_the_bake_verified(mirror):
     _, a_full, w_full, _ = TreeQuery(full, st, spare)(o, d)
     assert interpolated(a_full).sum() == 0 and np.any(w_full == WHY_THRESHOLD)
     with pytest.raises(ValueError, match="threshold_leaves"):
-        QueryOptions(threshold_leaves="some").validate()
+        paper(threshold_leaves="some").validate()
+
+
+def test_default_tolerance_gives_way_on_trees_without_viewpoint_errors(sphere_st, sphere_trees):
+    """The default options are the baked-error tolerance; a tree whose bake measured no
+    viewpoint cell (a cell-list region here) cannot bound its error, so the default answers
+    as the paper's rules with the 20-degree fallback threshold; with no fallback the
+    tolerance keeps every located ray out of interpolation."""
+    tree = sphere_trees[(4, 4)]
+    assert np.isnan(tree.vp_err).all() and not np.isnan(tree.dir_err).all()
+    assert QueryOptions().max_error_deg == 2.0 and QueryOptions().angle_deg is None
+    o, d = sphere_queries(tree, 1500, 3)
+    _, ans, why, _ = TreeQuery(tree, sphere_st)(o, d)
+    _, ans20, why20, _ = TreeQuery(tree, sphere_st, QueryOptions(max_error_deg=None,
+                                                                 angle_deg=20.0))(o, d)
+    assert np.array_equal(ans, ans20) and np.array_equal(why, why20)
+    assert interpolated(ans).mean() > 0.5
+    _, strict, swhy, _ = TreeQuery(tree, sphere_st, QueryOptions(fallback_angle_deg=None))(o, d)
+    assert not interpolated(strict).any() and np.any(swhy == WHY_TOLERANCE)

@@ -36,13 +36,19 @@ from riray.scene.model import (Camera, ObjectMaterial, Patch, RenderSettings, Sc
                                SpecularObject)
 from riray.scene.samples import build
 
+
+def paper(**kw) -> QueryOptions:
+    """The paper's rules (no baked-error tolerance) with options ``kw``."""
+    return QueryOptions(max_error_deg=None, **kw)
+
+
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 
 SIZE = 48
 # Storage precision of a blended output direction: octahedral codes (6.5e-5 rad each, a convex
 # blend keeps the bound) plus float32 blending, in degrees, with a margin.
 STORED_DEG = 0.02
-NO_THRESHOLDS = QueryOptions(angle_deg=None)
+NO_THRESHOLDS = paper(angle_deg=None)
 
 
 def leaves_in_rect(tree):
