@@ -31,6 +31,7 @@ import math
 import sys
 import time
 import uuid
+from concurrent.futures import CancelledError
 from dataclasses import asdict
 
 from . import __version__
@@ -250,13 +251,14 @@ class Cluster:
                     done, _ = wait(list(futures), timeout=POLL_S, return_when="FIRST_COMPLETED")
                 except TimeoutError:
                     done = ()
+                except CancelledError as e:         # Dask cancels all when the scheduler is lost
+                    raise self._lost(len(futures), e) from None
                 for f in done:
                     i = futures.pop(f)
                     results[i] = self._result(f, i, len(tasks))
                     report.shard(i, len(results[i]["patch"]))
                 if futures and self.client.status not in ("running", "connecting"):
-                    raise ClusterError(f"lost the Dask scheduler {self.address} "
-                                       f"({len(futures)} shards unfinished)")
+                    raise self._lost(len(futures))
         finally:
             if futures:
                 self.client.cancel(list(futures), force=True)
@@ -280,6 +282,10 @@ class Cluster:
             except Exception:          # noqa: BLE001 - the workers or scheduler are gone
                 pass
             self.scene = None
+
+    def _lost(self, unfinished: int, why=None) -> ClusterError:
+        return ClusterError(f"lost the Dask scheduler {self.address} ({unfinished} shards "
+                            "unfinished" + (f"; {_line(why)})" if why is not None else ")"))
 
     def _result(self, future, i: int, n: int) -> dict:
         try:

@@ -36,8 +36,8 @@ from .dircube import CUBE, DOMAIN, N_SLOTS, UV_AXES, cube_to_dir
 from .interp import FAIL, UNIT_CORNERS, angle_between, cell_weights
 from .quadtree import CORNERS, Forest
 from .region import Region
-from .tree import (BOUNDARY, PATH_CHANGE, SAMPLE_FIELDS, UNVERIFIED, BakeParams, RITree,
-                   Samples)
+from .tree import (BOUNDARY, PATH_CHANGE, SAMPLE_FIELDS, UNVERIFIED, BakeParams, PackedSamples,
+                   RITree, Samples)
 from .verify import viewpoint_errors
 
 TRACE_CHUNK = 8192          # rays per worker task (bounds worker memory, keeps progress fluid)
@@ -255,6 +255,8 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
     prog = _Progress(progress, 1 + refine, params.direction_depth, params.search_steps)
     baker = _Baker(st, params, prog, cancel, workers)
     baker.cluster = cluster
+    # without cameras nothing reads the samples after the bake: shards come back packed
+    baker.pack = region is None or not region.cameras
     baker.start(region)
     passes, measured = 0, False
     for _ in range(refine):
@@ -266,7 +268,8 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
         baker.measure(region)
     tree = baker.tree()
     # what the caller renders with is exactly what a cache file stores
-    tree.samples = tree.samples.packed(tree.box_lo, tree.box_hi)
+    if not isinstance(tree.samples, PackedSamples):
+        tree.samples = tree.samples.packed(tree.box_lo, tree.box_hi)
     tree.meta.update({"fingerprint": fingerprint(st.scene.object, st.scene.render.max_events),
                       "region": (region or Region()).describe(), "refine_passes": passes,
                       "bake_seconds": round(time.perf_counter() - t0, 3),
@@ -313,6 +316,7 @@ class _Baker:
         self.tracer = _Tracer(st, self, workers, progress, cancel)
         self.stages = _Stages(self.M, params.search_steps)
         self.cluster, self.shards, self.remote_cpu_s, self.merge_s = None, 0, 0.0, 0.0
+        self.pack = False                   # shards return packed samples (the last pass)
         self.dir_err = np.zeros(0, np.float32)
         self.dir_flags = np.zeros(0, np.uint8)
         self.vp_err = self.vp_flags = None
@@ -500,51 +504,51 @@ class _Baker:
         vps, inv = np.unique(block // N_SLOTS, return_inverse=True)
         rows = (vps[:, None] * N_SLOTS + np.arange(N_SLOTS)).ravel()
         return {"trees": inv.ravel() * N_SLOTS + block % N_SLOTS, "vp_pos": self.vp_pos[vps],
-                "vp_face": self.vp_face[vps], "rect": self.rect[rows]}
+                "vp_face": self.vp_face[vps], "rect": self.rect[rows], "pack": self.pack}
 
     def _merge(self, blocks, results):
         """Append the shards' trees (``results`` of ``bake_shard`` for ``blocks``) as one local
         pass over all of them makes them: nodes in (level, shard, shard's order), samples in
-        (stage, shard, shard's order); ids in node and sample arrays renumbered to match."""
+        (stage, shard, shard's order); ids in node and sample arrays renumbered to match. Each
+        array is one concatenation of contiguous blocks; ids are remapped shard by shard."""
         f, K0, S0 = self.dirf, len(self.dirf.child), len(self.samples)
         self._record(np.zeros(0, np.int64), np.float32(0), np.uint8(0))    # grow to K0
-        nshift = _block_shifts(np.array([r["node_counts"] for r in results]), K0)
-        sshift = _block_shifts(np.array([r["sample_counts"] for r in results]), S0)
-        K = K0 + sum(len(r["level"]) for r in results)
-        S = S0 + sum(len(r["patch"]) for r in results)
-        grow = {k: (getattr(f, k), np.full(K - K0, -1, getattr(f, k).dtype))
-                for k in ("child", "level", "ix", "iy")}
-        node = {k: np.concatenate(v) for k, v in grow.items()}
-        node["corner"] = np.concatenate([f.corner, np.full((K - K0, 4), -1, np.int64)])
-        node["dir_err"] = np.concatenate([self.dir_err, np.full(K - K0, np.nan, np.float32)])
-        node["dir_flags"] = np.concatenate([self.dir_flags, np.zeros(K - K0, np.uint8)])
-        smp = {k: np.concatenate([getattr(self.samples, k),
-                                  np.zeros((S - S0,) + getattr(self.samples, k).shape[1:],
-                                           getattr(self.samples, k).dtype)])
-               for k in SAMPLE_FIELDS}
-        ex = {k: [v] for k, v in self.ex.items()}
+        ncount = np.array([r["node_counts"] for r in results])
+        scount = np.array([r["sample_counts"] for r in results])
+        nshift, sshift = _block_shifts(ncount, K0), _block_shifts(scount, S0)
+        child, corner, ex = [], [], {k: [v] for k, v in self.ex.items()}
+        ids = np.int32 if self.pack else np.int64     # packed: the final tree, as a file holds it
         for i, (block, r) in enumerate(zip(blocks, results)):
-            nmap = np.arange(len(r["level"])) + nshift[i, r["level"]]
-            smap = np.arange(len(r["patch"])) + np.repeat(sshift[i], r["sample_counts"])
-            for k in ("level", "ix", "iy", "dir_err", "dir_flags"):
-                node[k][nmap] = r[k]
-            node["child"][nmap] = np.where(r["child"] >= 0, nmap[r["child"]], -1)
-            node["corner"][nmap] = np.where(r["corner"] >= 0, smap[r["corner"]], -1)
+            # new ids of the shard's nodes and samples, and -1 (an id of -1 stays -1)
+            nmap = np.append(np.arange(len(r["level"])) + nshift[i, r["level"]], -1).astype(ids)
+            smap = np.append(np.arange(len(r["patch"])) + np.repeat(sshift[i], scount[i]),
+                             -1).astype(ids)
+            child.append(nmap[r["child"]])
+            corner.append(smap[r["corner"]])
             f.root[block] = nmap[r["root"]]
-            for k in SAMPLE_FIELDS:
-                smp[k][smap] = r[k]
             ex["ex_node"].append(nmap[r["ex_node"]])
             ex["ex_ids"].append(smap[r["ex_ids"]])
             for k in ("ex_kind", "ex_pos", "ex_corner"):
                 ex[k].append(r[k])
             self.tracer.rays += int(r["rays"])
             self.remote_cpu_s += float(r["cpu_s"])
-        for k in ("child", "level", "ix", "iy", "corner"):
-            setattr(f, k, node[k])
-        self.dir_err, self.dir_flags = node["dir_err"], node["dir_flags"]
-        self.samples = Samples(**smp)
+        for k, parts in (("child", child), ("corner", corner)):
+            setattr(f, k, _interleave(parts, ncount, getattr(f, k).astype(ids)))
+        for k in ("level", "ix", "iy"):
+            setattr(f, k, _interleave([r[k] for r in results], ncount, getattr(f, k)))
+        self.dir_err = _interleave([r["dir_err"] for r in results], ncount, self.dir_err)
+        self.dir_flags = _interleave([r["dir_flags"] for r in results], ncount, self.dir_flags)
+        if self.pack:                  # the first and only pass: nothing to put before it
+            self.samples = PackedSamples(**{k: _interleave([r[k] for r in results], scount,
+                                                           results[0][k][:0])
+                                            for k in PackedSamples.FIELDS},
+                                         lo=self.box_lo, hi=self.box_hi)
+        else:
+            self.samples = Samples(**{k: _interleave([r[k] for r in results], scount,
+                                                     getattr(self.samples, k))
+                                      for k in SAMPLE_FIELDS})
         self.ex = {k: np.concatenate(v) for k, v in ex.items()}
-        order = np.argsort(self.ex["ex_node"])
+        order = np.argsort(self.ex["ex_node"], kind="stable")      # sorted runs: merged
         self.ex = {k: v[order] for k, v in self.ex.items()}
 
     def _record(self, nodes, err, flags):
@@ -657,13 +661,19 @@ def bake_shard(st, params: BakeParams, task: dict) -> dict:
     b.dirf = Forest.empty(DOMAIN[b.vp_face].reshape(-1, 4))
     b._bake_directions(task["trees"])
     b._record(np.zeros(0, np.int64), np.float32(0), np.uint8(0))
-    f = b.dirf
-    return {"level": f.level, "ix": f.ix, "iy": f.iy, "child": f.child, "corner": f.corner,
-            "root": f.root[task["trees"]], "dir_err": b.dir_err, "dir_flags": b.dir_flags,
+    f, i32 = b.dirf, np.int32                    # shard-local ids: int32 halves the transfer
+    smp, fields = b.samples, SAMPLE_FIELDS
+    if task["pack"]:                             # as the cache stores them (codec.py)
+        smp, fields = smp.packed(b.box_lo, b.box_hi), PackedSamples.FIELDS
+    return {"level": f.level, "ix": f.ix, "iy": f.iy, "child": f.child.astype(i32),
+            "corner": f.corner.astype(i32), "root": f.root[task["trees"]].astype(i32),
+            "dir_err": b.dir_err, "dir_flags": b.dir_flags,
             "node_counts": np.bincount(f.level, minlength=b.M + 1),
             "sample_counts": b.stages.count, "rays": b.tracer.rays,
             "cpu_s": time.thread_time() - c0,
-            **{k: getattr(b.samples, k) for k in SAMPLE_FIELDS}, **b.ex}
+            **{k: getattr(smp, k) for k in fields},
+            **{k: v.astype(i32) if k in ("ex_node", "ex_ids", "ex_corner") else v
+               for k, v in b.ex.items()}}
 
 
 def _block_shifts(counts, base):
@@ -674,6 +684,15 @@ def _block_shifts(counts, base):
     shard_off = np.cumsum(counts, axis=0) - counts
     local_start = np.cumsum(counts, axis=1) - counts
     return base + key_start[None] + shard_off - local_start
+
+
+def _interleave(parts, counts, head):
+    """``head`` then the items of ``parts`` (one array per shard, key-major with
+    ``counts[s, j]`` items of key j) in key-major, then shard order: one concatenation."""
+    start = np.cumsum(counts, axis=1) - counts
+    return np.concatenate([head] + [parts[s][start[s, j]:start[s, j] + counts[s, j]]
+                                    for j in range(counts.shape[1]) for s in range(len(parts))
+                                    if counts[s, j]])
 
 
 def _take(s: Samples, idx) -> Samples:
