@@ -7,10 +7,10 @@ import math
 import os
 import time
 
-import psutil
 import pytest
 
-pytest.importorskip("distributed")
+pytest.importorskip("distributed")      # the cluster extra (not in the Blender 4.2 environment)
+psutil = pytest.importorskip("psutil")  # installed with distributed
 
 
 def _setup(bl, tmp_path):
