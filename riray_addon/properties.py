@@ -16,6 +16,7 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
                        IntProperty, PointerProperty, StringProperty)
 
+from ..core.ritree.query import DEFAULT_MAX_ERROR_DEG
 from . import compat
 
 
@@ -110,9 +111,10 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
         items=[("RI", "Ray interpolants", "The paper's rules"),
                ("RAYTREE", "Ray tree", "Bala et al.'s ray-tree rule")],
         default="RI")
-    use_angle_threshold: BoolProperty(name="Angle threshold", default=True,
-                                      description="Trace when interpolants' output rays are "
-                                                  "further apart than the angle below")
+    use_angle_threshold: BoolProperty(name="Angle threshold", default=False,
+                                      description="The paper's rule: trace when interpolants' "
+                                                  "output rays are further apart than the "
+                                                  "angle below (Max error is the default)")
     angle_deg: FloatProperty(name="Angle", default=20.0, min=0.0, max=180.0,
                              description="Pairwise angle threshold between interpolants "
                                          "(degrees)")
@@ -130,13 +132,15 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
     use_null_interp: BoolProperty(name="Interpolate null rays", default=True,
                                   description="A ray whose interpolants are all trapped "
                                               "(null) is answered null instead of traced")
-    use_max_error: BoolProperty(name="Max error", default=False,
+    use_max_error: BoolProperty(name="Max error", default=True,
                                 description="Interpolate a ray only where the errors the bake "
                                             "measured in its four direction leaves and its "
                                             "viewpoint cell are within the angle below, else "
-                                            "trace it (camera bakes: a tree baked without "
-                                            "cameras traces every ray)")
-    max_error_deg: FloatProperty(name="Max error", default=2.0, min=0.0, max=180.0,
+                                            "trace it (a tree baked without cameras has no "
+                                            "viewpoint-cell errors: it uses the angle "
+                                            "threshold, 20 degrees unless set)")
+    max_error_deg: FloatProperty(name="Max error", default=DEFAULT_MAX_ERROR_DEG, min=0.0,
+                                 max=180.0,
                                  precision=3,
                                  description="Largest baked error of an interpolated ray "
                                              "(degrees)")

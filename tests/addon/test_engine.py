@@ -247,6 +247,11 @@ def test_max_error_and_path_identity_trace_through_baked_tree(bl, tmp_path):
         assert last["traced"].sum() == st["traced_pixels"]
         return st["traced_fraction"]
 
+    # the default is the tolerance (core's DEFAULT_MAX_ERROR_DEG), the angle threshold off
+    assert bl.properties.query_options(obj)["max_error_deg"] == pytest.approx(2.0)
+    assert bpy.types.Object.bl_rna.properties["riray"].fixed_type.properties[
+        "use_angle_threshold"].default is False
+    p.use_max_error = False
     assert bl.properties.query_options(obj)["max_error_deg"] is None
     off = render()
     p.use_path_identity = True
