@@ -169,7 +169,8 @@ def far_pairs(dirs, origins, used, max_angle=None, max_dist=None):
             u = used[sel]
             sq = np.einsum("nkc,nkc->nk", p, p)
             d2 = sq[:, :, None] + sq[:, None, :] - 2.0 * np.matmul(p, p.transpose(0, 2, 1))
-            hit = (d2 > lim * lim + PAIR_ROUND * (sq.max(axis=1) + 1e-300)[:, None, None]) \
+            spread = np.where(u, sq, 0.0).max(axis=1)       # of the used points only
+            hit = (d2 > lim * lim + PAIR_ROUND * (spread + 1e-300)[:, None, None]) \
                 & u[:, :, None] & u[:, None, :]
             far[a + np.flatnonzero(unsure[rows[blk]])] |= hit
     return rows, far
