@@ -39,8 +39,9 @@ from .ritree.bake import BakeCancelled, bake_shard
 from .ritree.cache import fingerprint
 from .ritree.tree import BakeParams
 
-SHARD_TREES = 96         # direction trees per shard at most (glass_sphere: ~4 s of one core at
-                         # depths 4/5, ~9 s at 5/6)
+SHARD_TREES = 192        # direction trees per shard at most (glass_sphere: ~8 s of one core at
+                         # depths 4/5): each shard's trace calls cost ~10 ms apiece whatever
+                         # their size, ~25 of them, so fewer, larger shards waste less
 SHARDS_PER_WORKER = 8    # at least this many shards per worker thread where the trees allow, so
                          # the last wave is short
 MIN_SHARD_TREES = 16     # fewer trees per shard trace in batches too small to vectorize well
@@ -49,8 +50,10 @@ WORKER_WAIT_S = 30.0     # seconds to wait for a first worker at a scheduler wit
 # Dask's nannies start workers with MALLOC_TRIM_THRESHOLD_=65536, which fixes glibc's mmap
 # threshold at 128 KiB: every large numpy temporary is then mapped and unmapped, and a shard
 # spends ~30 % of its CPU in the kernel (measured: 4/5 glass_sphere, 40 of 132 s). local:N unsets
-# it (docs/cluster.md says how for `dask worker`).
-TRIM_KEY = "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_"
+# it (docs/cluster.md says how for `dask worker`). It also turns off the workers' statistical
+# profiler (a stack sample every 10 ms: 2-3 % of a shard's CPU, measured at 3/4).
+WORKER_CONFIG = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+                 "distributed.worker.profile.enabled": False}
 
 
 class ClusterError(ValueError):
@@ -74,7 +77,7 @@ def connect(spec: str, timeout: float | None = None) -> "Cluster":
         n = spec[len("local:"):]
         if not n.isdigit() or int(n) < 1:
             raise ClusterError(f"--scheduler {spec}: expected local:N with N >= 1 worker processes")
-        with dask.config.set({TRIM_KEY: None}):
+        with dask.config.set(WORKER_CONFIG):
             local = distributed.LocalCluster(n_workers=int(n), threads_per_worker=1,
                                              processes=True, dashboard_address=":0",
                                              silence_logs=logging.ERROR)

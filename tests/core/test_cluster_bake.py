@@ -243,7 +243,7 @@ def test_shard_task_pickles_by_the_installed_name():
 
 def test_shard_count():
     c = C.Cluster(client=None)
-    assert c.shard_count(8262, threads=2) == 87            # SHARD_TREES per shard
+    assert c.shard_count(8262, threads=2) == 44            # SHARD_TREES per shard
     assert c.shard_count(8262, threads=64) == 512          # SHARDS_PER_WORKER per thread
     assert c.shard_count(100, threads=64) == 6             # MIN_SHARD_TREES per shard
     assert c.shard_count(3, threads=2) == 1
