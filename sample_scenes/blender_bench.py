@@ -16,7 +16,8 @@ resolution with
 - EEVEE (what this machine offers: without a GPU Blender falls back to software OpenGL, so its
   time here says nothing about EEVEE on a graphics card);
 and the same core Scene is rendered by riray in this process: exact, and through an RI-Tree
-baked for the view (viewpoint depth 4, direction depth 5). Every image is compared with the
+baked for the view (viewpoint depth 4, direction depth 5) with the default query options
+(the 2 degree baked-error tolerance). Every image is compared with the
 reference (PSNR of display-range linear RGB, max per-pixel difference); times are wall seconds
 per frame (Cycles: the whole render call, scene sync included; riray: the render, with the
 once-per-scene acceleration-structure build and the bake listed apart).
@@ -182,8 +183,7 @@ def bench_scene(name, view, size, spps, ref_spp, workers, out: Path, tmp: Path, 
     params = cfg.bake_params(cfg.viewpoint_depth, cfg.direction_depth, cfg.tolerance)
     tree, brec = bake_view(st, core, cam, size, params, workers, tmp)
     it = render_tree(core, tree, camera=view, width=size, height=size,
-                     options=QueryOptions(angle_deg=cfg.angle), reference=False,
-                     workers=workers, st=st)
+                     options=QueryOptions(), reference=False, workers=workers, st=st)
     images["riray_interpolated"] = it.image
     rows.append({"renderer": "riray", "label": "riray_interpolated",
                  "frame_s": it.stats["summary"]["wall_s"], "build_s": build_s,
