@@ -40,6 +40,8 @@ from .tree import (BOUNDARY, PATH_CHANGE, SAMPLE_FIELDS, UNVERIFIED, BakeParams,
                    RITree, Samples)
 from .verify import viewpoint_errors
 
+# The angle threshold (degrees) of the refinement rule (refine_rule): the paper's value.
+REFINE_ANGLE_DEG = 20.0
 TRACE_CHUNK = 8192          # rays per worker task (bounds worker memory, keeps progress fluid)
 SLOT_MIN_DEPTH = 1e-9      # object-box parts nearer than this (x its extent) along a slot's
                             # axis are ignored by the slot test (they project to infinity)
@@ -586,7 +588,7 @@ class _Baker:
         from .query import WHY_THRESHOLD, WHY_USABLE, TreeQuery
         tree = self.tree()
         o, d, tmax = region.rays
-        _, ans, why, _ = TreeQuery(tree, self.st)(o, d, tmax)
+        _, ans, why, _ = TreeQuery(tree, self.st, refine_rule())(o, d, tmax)
         bad = (why == WHY_USABLE) | (why == WHY_THRESHOLD)
         t_in, face, x, y, _ = entry_points(tree, o[bad], d[bad])
         leaf, _, _ = self.vpf.locate(face, x, y)
@@ -693,6 +695,13 @@ def _interleave(parts, counts, head):
     return np.concatenate([head] + [parts[s][start[s, j]:start[s, j] + counts[s, j]]
                                     for j in range(counts.shape[1]) for s in range(len(parts))
                                     if counts[s, j]])
+
+
+def refine_rule():
+    """The query rule whose traced rays split viewpoint cells in a refinement pass: the paper's,
+    with its 20-degree angle threshold (not the render-time default, which may change)."""
+    from .query import QueryOptions
+    return QueryOptions(angle_deg=REFINE_ANGLE_DEG, max_error_deg=None)
 
 
 def _take(s: Samples, idx) -> Samples:

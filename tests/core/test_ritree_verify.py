@@ -243,3 +243,22 @@ def test_tolerance_tightens_monotonically(sphere):
         prev = cur
     first = TreeQuery(tree, st, NO_THRESHOLDS)(o, d, tmax)[1]
     assert prev["traced"] > 0.5 * np.sum((first >= FULL) & (first <= EXTRAPOLATED_S))
+
+
+def test_refinement_does_not_follow_the_render_time_default(sphere_loose, monkeypatch):
+    """A refinement pass splits the cells whose camera rays the paper's rule (20-degree angle
+    threshold, bake.refine_rule) traces; changing QueryOptions' defaults (the render-time
+    default, here to a 90-degree threshold) leaves the baked tree as it was."""
+    import dataclasses
+    from riray.ritree import query
+    _, _, tree = sphere_loose
+    fields = [f.name for f in dataclasses.fields(query.QueryOptions)]
+    defaults = list(query.QueryOptions.__init__.__defaults__)
+    defaults[fields.index("angle_deg")] = 90.0
+    defaults[fields.index("max_error_deg")] = None
+    monkeypatch.setattr(query.QueryOptions.__init__, "__defaults__", tuple(defaults))
+    assert query.QueryOptions().angle_deg == 90.0
+    _, _, again = sphere_bake(1e9)
+    assert len(again.vp_forest.child) == len(tree.vp_forest.child)
+    assert len(again.samples) == len(tree.samples)
+    assert np.array_equal(again.vp_forest.corner, tree.vp_forest.corner)
