@@ -60,6 +60,14 @@ class ClusterError(ValueError):
     """The cluster cannot be reached or cannot finish the bake; the message says why."""
 
 
+def _interrupted_wait(record: logging.LogRecord) -> bool:
+    """Logging filter: False for the event-loop error Dask's ``sync`` leaves behind when Ctrl-C
+    interrupts a wait (a NameError about its ``future``, logged with a traceback by tornado);
+    the bake reports the interruption itself, in one line."""
+    exc = record.exc_info[1] if record.exc_info else None
+    return not (isinstance(exc, NameError) and "'future'" in str(exc))
+
+
 def connect(spec: str, timeout: float | None = None) -> "Cluster":
     """``local:N`` (a LocalCluster of N worker processes, one thread each, on this machine) or
     a running scheduler's address (``tcp://host:8786``). ``timeout``: seconds to connect
@@ -72,6 +80,9 @@ def connect(spec: str, timeout: float | None = None) -> "Cluster":
         raise ClusterError("--scheduler needs Dask: pip install 'riray[cluster]'") from None
     if timeout is None:
         timeout = dask.utils.parse_timedelta(dask.config.get("distributed.comm.timeouts.connect"))
+    tornado_log = logging.getLogger("tornado.application")
+    if _interrupted_wait not in tornado_log.filters:
+        tornado_log.addFilter(_interrupted_wait)
     local = None
     if spec.startswith("local:"):
         n = spec[len("local:"):]

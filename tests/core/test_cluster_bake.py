@@ -173,7 +173,7 @@ def test_ctrl_c_keeps_the_previous_cache(tmp_path, local_full):
     ritree.save(local_full, out)
     before = out.read_bytes()
     proc = subprocess.Popen([sys.executable, "-m", "riray.cli", "bake", "glass_sphere", "--full",
-                             "--viewpoint-depth", "2", "--direction-depth", "3", "--scheduler",
+                             "--viewpoint-depth", "3", "--direction-depth", "4", "--scheduler",
                              "local:2", "--out", str(out)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     line, t0 = "", time.time()
