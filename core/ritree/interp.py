@@ -31,8 +31,8 @@ PAIR_ROUND = 1e-13
 
 
 def bilinear_weights(lx, ly) -> np.ndarray:
-    """(N, 4) bilinear weights of the four corners."""
-    return np.stack([(1 - lx) * (1 - ly), lx * (1 - ly), (1 - lx) * ly, lx * ly], axis=1)
+    """Bilinear weights of the four corners on a new last axis: lx, ly (...) -> (..., 4)."""
+    return np.stack([(1 - lx) * (1 - ly), lx * (1 - ly), (1 - lx) * ly, lx * ly], axis=-1)
 
 
 def barycentric(q, tri):
