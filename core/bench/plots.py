@@ -23,7 +23,7 @@ from pathlib import Path
 
 SWEEP_MARKERS = {"depth": "o", "tolerance": "s", "angle": "^", "distance": "v",
                  "extrapolation": "D", "max_error": "P", "path": "X", "raytree": "h",
-                 "table": "*"}
+                 "table": "*", "deeper tree": "p"}
 # Sweeps drawn as curves (points joined in time order): the render-time policies compared.
 CURVES = ("angle", "max_error", "path")
 
@@ -75,6 +75,10 @@ def plot_pareto(result, path):
     rows = [dict(r) for r in result["sweeps"]]
     if not rows:     # no sweeps: the table rows (close to the same idea, fewer points)
         rows = [dict(r, sweep="table") for r in result["tables"] if r["row"] != "exact"]
+    else:            # the default tolerance on the deeper tree, on the swept view
+        view = result.get("config", {}).get("sweep_view")
+        rows += [dict(r, sweep="deeper tree") for r in result["tables"]
+                 if r["row"] == "trusted" and r["view"] == view]
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     if not scenes:
         return None

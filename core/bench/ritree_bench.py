@@ -62,11 +62,13 @@ from ..scene.samples import SAMPLES, build
 from .exact_bench import machine
 
 VIEWS = ("far", "close", "zoom")
-ROWS = ("exact", "interp", "interp_angle", "interp_tol", "raytree")
+ROWS = ("exact", "interp", "interp_angle", "interp_tol", "raytree", "trusted")
 ROW_LABELS = {"exact": "ray traced", "interp": "interpolated (no angle threshold)",
               "interp_angle": "interpolated (angle threshold {angle:g} deg)",
               "interp_tol": f"interpolated (default: max error {DEFAULT_MAX_ERROR_DEG:g} deg)",
-              "raytree": "raytree policy (Bala et al.)"}
+              "raytree": "raytree policy (Bala et al.)",
+              "trusted": "default tolerance, deeper tree (viewpoint depth {vp} + refine {vr}, "
+                         "direction depth {dd})"}
 
 
 def paper(**kw) -> QueryOptions:
@@ -91,6 +93,9 @@ class BenchConfig:
     viewpoint_depth: int = 4              # table trees
     direction_depth: int = 5
     tolerance: float = 0.5                # bake tolerance of the table trees (degrees)
+    # (viewpoint depth, direction depth, viewpoint refine) of the "trusted" row's own tree: the
+    # default tolerance on a tree baked deeper where its errors are measured (None: no row)
+    trusted: tuple | None = (4, 7, 3)
     angle: float = 20.0                   # the "with threshold" row (the CLI default)
     sweeps: bool = True
     sweep_scenes: tuple = ("glass_sphere", "vase_glass")
@@ -121,6 +126,11 @@ class BenchConfig:
         if self.repeats < 1 or self.sweep_repeats < 1:
             raise ValueError(f"repeats: must be >= 1 (got {self.repeats}, {self.sweep_repeats})")
         self.bake_params(self.viewpoint_depth, self.direction_depth, self.tolerance)
+        if self.trusted is not None:
+            if len(self.trusted) != 3:
+                raise ValueError(f"trusted: (viewpoint depth, direction depth, viewpoint refine) "
+                                 f"(got {self.trusted!r})")
+            self.bake_params(*self.trusted[:2], self.tolerance, self.trusted[2])
         for vp in self.vp_depths:
             for dd in self.dir_depths:
                 self.bake_params(vp, dd, self.tolerance)
@@ -132,11 +142,14 @@ class BenchConfig:
                 raise ValueError(f"thresholds: must be finite and >= 0 (got {a!r})")
         return self
 
-    def bake_params(self, vp, dd, tol) -> ritree.BakeParams:
+    def bake_params(self, vp, dd, tol, refine=None) -> ritree.BakeParams:
         """BakeParams with the angular tolerance ``tol`` and the distance tolerance scaled with
-        it from the defaults (0.5 deg <-> 0.002 of the box diagonal): one accuracy knob."""
+        it from the defaults (0.5 deg <-> 0.002 of the box diagonal): one accuracy knob.
+        ``refine``: viewpoint refinement levels (None: the default)."""
         d = ritree.BakeParams()
         return ritree.BakeParams(viewpoint_depth=int(vp), direction_depth=int(dd),
+                                 viewpoint_refine=d.viewpoint_refine if refine is None
+                                 else int(refine),
                                  min_direction_depth=min(d.min_direction_depth, int(dd)),
                                  tolerance_deg=float(tol),
                                  tolerance_dist=d.tolerance_dist * float(tol) / d.tolerance_deg
@@ -148,7 +161,7 @@ QUICK = dict(scenes=("glass_sphere", "vase_mirror"), views=("close", "zoom"), si
              repeats=1, viewpoint_depth=3, direction_depth=4, sweep_scenes=("glass_sphere",),
              vp_depths=(2, 3), dir_depths=(3, 4), tolerances=(0.5, 2.0),
              angles=(None, 20.0, 5.0), distances=(None, 0.05), extrapolations=(None, 0.25),
-             max_errors=(4.0, 1.0), path_max_errors=(2.0,), quick=True)
+             max_errors=(4.0, 1.0), path_max_errors=(2.0,), trusted=(3, 5, 2), quick=True)
 
 
 # --------------------------------------------------------------------------- measuring
@@ -169,6 +182,7 @@ def bake_view(st, scene, cam, size, params, workers, tree_dir) -> tuple:
                              f"_dir{params.direction_depth}_tol{params.tolerance_deg:g}.rit")
     ritree.save(tree, path)
     rec = {"viewpoint_depth": params.viewpoint_depth, "direction_depth": params.direction_depth,
+           "viewpoint_refine": params.viewpoint_refine,
            "tolerance": params.tolerance_deg, "bake_s": wall, "bake_cpu_s": cpu,
            "cache_bytes": path.stat().st_size, "tree_samples": len(tree.samples),
            "bake_rays": int(tree.meta.get("rays_traced", 0)),
@@ -340,7 +354,7 @@ def _table_configs(cfg):
 
 
 def _n_steps(cfg):
-    n = len(cfg.scenes) * len(cfg.views) * 2
+    n = len(cfg.scenes) * len(cfg.views) * (2 if cfg.trusted is None else 3)
     if cfg.sweeps:
         per = len(cfg.vp_depths) * len(cfg.dir_depths) * 2 + len(cfg.tolerances) * 2 \
             + len(cfg.angles) + len(cfg.distances) + len(cfg.extrapolations) \
@@ -377,7 +391,7 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
                 images = rows.pop("_images")
                 if cfg.images:
                     _save_images(out / "images", f"{name}_{view}", images)
-                for kind in ROWS:
+                for kind in ROWS[:-1]:
                     tables.append({"scene": name, "view": view, "row": kind,
                                    "label": ROW_LABELS[kind].format(angle=cfg.angle),
                                    **_strip(rows[kind]), **_bake_cols(brec)})
@@ -389,6 +403,8 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
                     # swept scenes get theirs with their sweeps)
                     sweeps += _policy_sweeps(cfg, name, st, cam, tree, brec, workers, log)
                 _drop_tree(tree, brec, cfg)
+                if cfg.trusted is not None:
+                    tables.append(_trusted_row(cfg, name, st, scene, cam, workers, tree_dir, log))
         if cfg.sweeps:
             for name in cfg.sweep_scenes:
                 sweeps += _sweep_scene(cfg, name, workers, tree_dir, log)
@@ -408,8 +424,26 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
     return result
 
 
+def _trusted_row(cfg, name, st, scene, cam, workers, tree_dir, log) -> dict:
+    """The "trusted" row: the default options on the view's tree baked at ``cfg.trusted``'s
+    depths, against its own interleaved exact passes (its speed-up is of the same run)."""
+    vp, dd, vr = cfg.trusted
+    tree, brec = bake_view(st, scene, cam, cfg.size, cfg.bake_params(vp, dd, cfg.tolerance, vr),
+                           workers, tree_dir)
+    rows = measure_configs(st, tree, cam, cfg.size, {"trusted": QueryOptions()}, cfg.repeats,
+                           workers)
+    r = rows["trusted"]
+    log(f"{name}/{cam.name}: deeper tree baked in {brec['bake_s']:.1f} s, traced "
+        f"{r['rays_traced']}/{r['object_rays']}, object-only {r['object_cpu_s']:.2f} s")
+    _drop_tree(tree, brec, cfg)
+    return {"scene": name, "view": cam.name, "row": "trusted",
+            "label": ROW_LABELS["trusted"].format(vp=vp, dd=dd, vr=vr),
+            **_strip(r), **_bake_cols(brec)}
+
+
 def _bake_cols(brec):
-    return {k: brec[k] for k in ("viewpoint_depth", "direction_depth", "tolerance", "bake_s",
+    return {k: brec[k] for k in ("viewpoint_depth", "direction_depth", "viewpoint_refine",
+                                 "tolerance", "bake_s",
                                  "bake_cpu_s", "cache_bytes", "tree_samples", "bake_rays")}
 
 
@@ -517,7 +551,9 @@ def amortization(tables) -> list:
         by.setdefault((r["scene"], r["view"]), {})[r["row"]] = r
     for (scene, view), rows in by.items():
         ex = rows["exact"]
-        for kind in ("interp", "interp_angle", "interp_tol"):
+        for kind in ("interp", "interp_angle", "interp_tol", "trusted"):
+            if kind not in rows:
+                continue
             it = rows[kind]
             saved = ex["total_cpu_s"] - it["total_cpu_s"]
             saved_o = ex["object_cpu_s"] - it["object_cpu_s"]
@@ -573,7 +609,8 @@ TABLE_CSV = ("scene", "view", "row", "label", "rays_traced", "object_rays", "tra
              "query_own_cpu_s", "query_own_fraction", "pairs",
              "newton_iters", "fallback_pairs", "exact_first_hits", "samples_gathered",
              "angle_mean_deg", "angle_p99_deg", "angle_max_deg", "psnr_db", "max_pixel_diff",
-             "hit_disagreements", "viewpoint_depth", "direction_depth", "tolerance", "bake_s",
+             "hit_disagreements", "viewpoint_depth", "direction_depth", "viewpoint_refine",
+             "tolerance", "bake_s",
              "bake_cpu_s", "cache_bytes", "tree_samples")
 SWEEP_CSV = ("scene", "view", "sweep", "viewpoint_depth", "direction_depth", "tolerance",
              "policy", "angle", "distance", "extrapolation", "max_error", "path_identity",
@@ -675,19 +712,24 @@ def tables_markdown(result) -> str:
               "interpolated frames cost less than N exact ones)", "",
               "| scene | view | bake s (wall) | bake CPU s | cache MB | exact frame | interpolated "
               "frame, no threshold | N* | interpolated frame, angle threshold | N* | "
-              "interpolated frame, default tolerance | N* |",
-              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    cache = {(r["scene"], r["view"]): r["cache_bytes"] for r in tables}
+              "interpolated frame, default tolerance | N* | deeper tree: bake CPU s | cache MB "
+              "| frame | N* |",
+              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    cache = {(r["scene"], r["view"], r["row"]): r["cache_bytes"] for r in tables}
     am = {(a["scene"], a["view"], a["row"]): a for a in result["amortization"]}
     for scene, view in dict.fromkeys((a["scene"], a["view"]) for a in result["amortization"]):
         a, b, c = (am[(scene, view, k)] for k in ("interp", "interp_angle", "interp_tol"))
 
         def be(x):
             return "never" if x["break_even_frames"] is None else f"{x['break_even_frames']:,}"
+        t = am.get((scene, view, "trusted"))
+        deep = ("- | - | - | -" if t is None else
+                f"{t['bake_cpu_s']:.1f} | {cache[(scene, view, 'trusted')] / 1e6:.2f} | "
+                f"{t['interp_frame_cpu_s']:.2f} | {be(t)}")
         lines.append(f"| {scene} | {view} | {a['bake_s']:.1f} | {a['bake_cpu_s']:.1f} | "
-                     f"{cache[(scene, view)] / 1e6:.2f} | {a['exact_frame_cpu_s']:.2f} | "
+                     f"{cache[(scene, view, 'exact')] / 1e6:.2f} | {a['exact_frame_cpu_s']:.2f} | "
                      f"{a['interp_frame_cpu_s']:.2f} | {be(a)} | {b['interp_frame_cpu_s']:.2f} | "
-                     f"{be(b)} | {c['interp_frame_cpu_s']:.2f} | {be(c)} |")
+                     f"{be(b)} | {c['interp_frame_cpu_s']:.2f} | {be(c)} | {deep} |")
     return "\n".join(lines)
 
 

@@ -43,7 +43,7 @@ def test_outputs_exist(bench):
 def test_tables_consistent(bench):
     rows = _csv(bench / "tables.csv")
     res = json.loads((bench / "results.json").read_text())
-    assert len(rows) == len(res["tables"]) == 2 * len(ROWS)     # 2 scenes x 1 view x 5 rows
+    assert len(rows) == len(res["tables"]) == 2 * len(ROWS)     # 2 scenes x 1 view x 6 rows
     assert res["machine"]["cpu_count"] >= 1 and res["command"].startswith("riray bench --quick")
     by = {}
     for r in rows:
@@ -54,7 +54,7 @@ def test_tables_consistent(bench):
         ex = rs["exact"]
         assert int(ex["rays_traced"]) == int(ex["object_rays"]) > 0
         assert int(ex["samples_gathered"]) == 0 and int(ex["newton_iters"]) > 0
-        for kind in ("interp", "interp_angle", "interp_tol", "raytree"):
+        for kind in ("interp", "interp_angle", "interp_tol", "raytree", "trusted"):
             r = rs[kind]
             assert int(r["object_rays"]) == int(ex["object_rays"])      # the same camera rays
             assert int(r["rays_traced"]) <= int(ex["rays_traced"])
@@ -66,6 +66,12 @@ def test_tables_consistent(bench):
             if r["angle_mean_deg"]:
                 assert 0 <= float(r["angle_mean_deg"]) <= float(r["angle_p99_deg"]) \
                     <= float(r["angle_max_deg"]) + 1e-9
+        # the deeper tree is its own bake, at the configured depths
+        vp, dd, vr = res["config"]["trusted"]
+        t = rs["trusted"]
+        assert (int(t["viewpoint_depth"]), int(t["direction_depth"]), int(t["viewpoint_refine"])) \
+            == (vp, dd, vr) != (int(ex["viewpoint_depth"]), int(ex["direction_depth"]),
+                                int(ex["viewpoint_refine"]))
         # the angle threshold only ever adds traced rays to the no-threshold row
         assert int(rs["interp_angle"]["rays_traced"]) >= int(rs["interp"]["rays_traced"])
     # the JSON and the CSV hold the same numbers
