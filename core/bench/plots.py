@@ -78,7 +78,7 @@ def plot_pareto(result, path):
     else:            # the default tolerance on the deeper tree, on the swept view
         view = result.get("config", {}).get("sweep_view")
         rows += [dict(r, sweep="deeper tree") for r in result["tables"]
-                 if r["row"] == "trusted" and r["view"] == view]
+                 if r["row"] == "deeper" and r["view"] == view]
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     if not scenes:
         return None

@@ -62,12 +62,12 @@ from ..scene.samples import SAMPLES, build
 from .exact_bench import machine
 
 VIEWS = ("far", "close", "zoom")
-ROWS = ("exact", "interp", "interp_angle", "interp_tol", "raytree", "trusted")
+ROWS = ("exact", "interp", "interp_angle", "interp_tol", "raytree", "deeper")
 ROW_LABELS = {"exact": "ray traced", "interp": "interpolated (no angle threshold)",
               "interp_angle": "interpolated (angle threshold {angle:g} deg)",
               "interp_tol": f"interpolated (default: max error {DEFAULT_MAX_ERROR_DEG:g} deg)",
               "raytree": "raytree policy (Bala et al.)",
-              "trusted": "default tolerance, deeper tree (viewpoint depth {vp} + refine {vr}, "
+              "deeper": "default tolerance, deeper tree (viewpoint depth {vp} + refine {vr}, "
                          "direction depth {dd})"}
 
 
@@ -93,9 +93,9 @@ class BenchConfig:
     viewpoint_depth: int = 4              # table trees
     direction_depth: int = 5
     tolerance: float = 0.5                # bake tolerance of the table trees (degrees)
-    # (viewpoint depth, direction depth, viewpoint refine) of the "trusted" row's own tree: the
-    # default tolerance on a tree baked deeper where its errors are measured (None: no row)
-    trusted: tuple | None = (4, 7, 3)
+    # (viewpoint depth, direction depth, viewpoint refine) of the "deeper" row's own tree: the
+    # default tolerance on a tree the bake may refine further, where its tests fail (None: no row)
+    deeper_tree: tuple | None = (4, 7, 3)
     angle: float = 20.0                   # the "with threshold" row (the CLI default)
     sweeps: bool = True
     sweep_scenes: tuple = ("glass_sphere", "vase_glass")
@@ -126,11 +126,11 @@ class BenchConfig:
         if self.repeats < 1 or self.sweep_repeats < 1:
             raise ValueError(f"repeats: must be >= 1 (got {self.repeats}, {self.sweep_repeats})")
         self.bake_params(self.viewpoint_depth, self.direction_depth, self.tolerance)
-        if self.trusted is not None:
-            if len(self.trusted) != 3:
-                raise ValueError(f"trusted: (viewpoint depth, direction depth, viewpoint refine) "
-                                 f"(got {self.trusted!r})")
-            self.bake_params(*self.trusted[:2], self.tolerance, self.trusted[2])
+        if self.deeper_tree is not None:
+            if len(self.deeper_tree) != 3:
+                raise ValueError("deeper_tree: (viewpoint depth, direction depth, viewpoint "
+                                 f"refine) (got {self.deeper_tree!r})")
+            self.bake_params(*self.deeper_tree[:2], self.tolerance, self.deeper_tree[2])
         for vp in self.vp_depths:
             for dd in self.dir_depths:
                 self.bake_params(vp, dd, self.tolerance)
@@ -161,7 +161,7 @@ QUICK = dict(scenes=("glass_sphere", "vase_mirror"), views=("close", "zoom"), si
              repeats=1, viewpoint_depth=3, direction_depth=4, sweep_scenes=("glass_sphere",),
              vp_depths=(2, 3), dir_depths=(3, 4), tolerances=(0.5, 2.0),
              angles=(None, 20.0, 5.0), distances=(None, 0.05), extrapolations=(None, 0.25),
-             max_errors=(4.0, 1.0), path_max_errors=(2.0,), trusted=(3, 5, 2), quick=True)
+             max_errors=(4.0, 1.0), path_max_errors=(2.0,), deeper_tree=(3, 5, 2), quick=True)
 
 
 # --------------------------------------------------------------------------- measuring
@@ -354,7 +354,7 @@ def _table_configs(cfg):
 
 
 def _n_steps(cfg):
-    n = len(cfg.scenes) * len(cfg.views) * (2 if cfg.trusted is None else 3)
+    n = len(cfg.scenes) * len(cfg.views) * (2 if cfg.deeper_tree is None else 3)
     if cfg.sweeps:
         per = len(cfg.vp_depths) * len(cfg.dir_depths) * 2 + len(cfg.tolerances) * 2 \
             + len(cfg.angles) + len(cfg.distances) + len(cfg.extrapolations) \
@@ -391,7 +391,7 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
                 images = rows.pop("_images")
                 if cfg.images:
                     _save_images(out / "images", f"{name}_{view}", images)
-                for kind in ROWS[:-1]:
+                for kind in (k for k in ROWS if k in rows):
                     tables.append({"scene": name, "view": view, "row": kind,
                                    "label": ROW_LABELS[kind].format(angle=cfg.angle),
                                    **_strip(rows[kind]), **_bake_cols(brec)})
@@ -403,8 +403,8 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
                     # swept scenes get theirs with their sweeps)
                     sweeps += _policy_sweeps(cfg, name, st, cam, tree, brec, workers, log)
                 _drop_tree(tree, brec, cfg)
-                if cfg.trusted is not None:
-                    tables.append(_trusted_row(cfg, name, st, scene, cam, workers, tree_dir, log))
+                if cfg.deeper_tree is not None:
+                    tables.append(_deeper_row(cfg, name, st, scene, cam, workers, tree_dir, log))
         if cfg.sweeps:
             for name in cfg.sweep_scenes:
                 sweeps += _sweep_scene(cfg, name, workers, tree_dir, log)
@@ -424,20 +424,20 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
     return result
 
 
-def _trusted_row(cfg, name, st, scene, cam, workers, tree_dir, log) -> dict:
-    """The "trusted" row: the default options on the view's tree baked at ``cfg.trusted``'s
+def _deeper_row(cfg, name, st, scene, cam, workers, tree_dir, log) -> dict:
+    """The "deeper" row: the default options on the view's tree baked at ``cfg.deeper_tree``'s
     depths, against its own interleaved exact passes (its speed-up is of the same run)."""
-    vp, dd, vr = cfg.trusted
+    vp, dd, vr = cfg.deeper_tree
     tree, brec = bake_view(st, scene, cam, cfg.size, cfg.bake_params(vp, dd, cfg.tolerance, vr),
                            workers, tree_dir)
-    rows = measure_configs(st, tree, cam, cfg.size, {"trusted": QueryOptions()}, cfg.repeats,
+    rows = measure_configs(st, tree, cam, cfg.size, {"deeper": QueryOptions()}, cfg.repeats,
                            workers)
-    r = rows["trusted"]
+    r = rows["deeper"]
     log(f"{name}/{cam.name}: deeper tree baked in {brec['bake_s']:.1f} s, traced "
         f"{r['rays_traced']}/{r['object_rays']}, object-only {r['object_cpu_s']:.2f} s")
     _drop_tree(tree, brec, cfg)
-    return {"scene": name, "view": cam.name, "row": "trusted",
-            "label": ROW_LABELS["trusted"].format(vp=vp, dd=dd, vr=vr),
+    return {"scene": name, "view": cam.name, "row": "deeper",
+            "label": ROW_LABELS["deeper"].format(vp=vp, dd=dd, vr=vr),
             **_strip(r), **_bake_cols(brec)}
 
 
@@ -551,7 +551,7 @@ def amortization(tables) -> list:
         by.setdefault((r["scene"], r["view"]), {})[r["row"]] = r
     for (scene, view), rows in by.items():
         ex = rows["exact"]
-        for kind in ("interp", "interp_angle", "interp_tol", "trusted"):
+        for kind in ("interp", "interp_angle", "interp_tol", "deeper"):
             if kind not in rows:
                 continue
             it = rows[kind]
@@ -722,9 +722,9 @@ def tables_markdown(result) -> str:
 
         def be(x):
             return "never" if x["break_even_frames"] is None else f"{x['break_even_frames']:,}"
-        t = am.get((scene, view, "trusted"))
+        t = am.get((scene, view, "deeper"))
         deep = ("- | - | - | -" if t is None else
-                f"{t['bake_cpu_s']:.1f} | {cache[(scene, view, 'trusted')] / 1e6:.2f} | "
+                f"{t['bake_cpu_s']:.1f} | {cache[(scene, view, 'deeper')] / 1e6:.2f} | "
                 f"{t['interp_frame_cpu_s']:.2f} | {be(t)}")
         lines.append(f"| {scene} | {view} | {a['bake_s']:.1f} | {a['bake_cpu_s']:.1f} | "
                      f"{cache[(scene, view, 'exact')] / 1e6:.2f} | {a['exact_frame_cpu_s']:.2f} | "

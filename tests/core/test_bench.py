@@ -54,7 +54,7 @@ def test_tables_consistent(bench):
         ex = rs["exact"]
         assert int(ex["rays_traced"]) == int(ex["object_rays"]) > 0
         assert int(ex["samples_gathered"]) == 0 and int(ex["newton_iters"]) > 0
-        for kind in ("interp", "interp_angle", "interp_tol", "raytree", "trusted"):
+        for kind in ("interp", "interp_angle", "interp_tol", "raytree", "deeper"):
             r = rs[kind]
             assert int(r["object_rays"]) == int(ex["object_rays"])      # the same camera rays
             assert int(r["rays_traced"]) <= int(ex["rays_traced"])
@@ -67,8 +67,8 @@ def test_tables_consistent(bench):
                 assert 0 <= float(r["angle_mean_deg"]) <= float(r["angle_p99_deg"]) \
                     <= float(r["angle_max_deg"]) + 1e-9
         # the deeper tree is its own bake, at the configured depths
-        vp, dd, vr = res["config"]["trusted"]
-        t = rs["trusted"]
+        vp, dd, vr = res["config"]["deeper_tree"]
+        t = rs["deeper"]
         assert (int(t["viewpoint_depth"]), int(t["direction_depth"]), int(t["viewpoint_refine"])) \
             == (vp, dd, vr) != (int(ex["viewpoint_depth"]), int(ex["direction_depth"]),
                                 int(ex["viewpoint_refine"]))
