@@ -76,7 +76,7 @@ def plot_pareto(result, path):
     if not rows:     # no sweeps: the table rows (close to the same idea, fewer points)
         rows = [dict(r, sweep="table") for r in result["tables"] if r["row"] != "exact"]
     else:            # the default tolerance on the deeper tree, on the swept view
-        view = result.get("config", {}).get("sweep_view")
+        view = result["config"]["sweep_view"]
         rows += [dict(r, sweep="deeper tree") for r in result["tables"]
                  if r["row"] == "deeper" and r["view"] == view]
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
