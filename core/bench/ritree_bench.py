@@ -12,13 +12,19 @@ machine-independent work count - flat-sub-patch pairs solved by Newton and Newto
 (tracing), samples gathered (interpolation: 16 per ray looked up in the tree, 2 more per ray
 answered from a leaf's extra samples) - because wall time on a shared machine is noisy.
 
-**Measurement.** One *pass* renders the view chunk by chunk; every chunk is rendered through
-the tree and exactly in the same worker process, one right after the other (the order flips
-from pass to pass), so both see the same load and caches. Each interpolated configuration gets
-``repeats`` passes; the exact row is the median over all passes of the view, each interpolated
-row the median over its own. Work counts and errors are deterministic (first pass). The tree is
-saved to a .rit file and loaded back (memory-mapped, packed samples) before rendering, as
-``riray render --tree`` would use it.
+**Measurement.** One *pass* renders the whole view in one worker process, share by share; every
+share is rendered through the tree and exactly, one right after the other (the order flips from
+pass to pass), so both see the same load and caches. All passes of a view (every row's and
+sweep point's, on every tree baked for it) run as one batch, ``workers`` passes at a time, each
+in its own process, so the other core is busy for both halves of nearly every pass alike. (A
+view split over two processes is not: the share that finishes last runs its second half alone
+on an idle machine, and that half, exact or interpolated by the pass's order, ran measurably
+faster.) Each interpolated configuration gets ``repeats`` passes (sweep points
+``sweep_repeats``); the exact row is the median over all passes of the view, each interpolated
+row the median over its own, and of its own passes' exact halves (``exact_object_cpu_s``).
+Work counts and errors are deterministic (first pass). The tree is saved to a .rit file and
+loaded back (memory-mapped, packed samples) before rendering, as ``riray render --tree`` would
+use it.
 
 **Sweeps** (on ``sweep_scenes``, ``sweep_view``): viewpoint x direction depth, bake tolerance
 (re-bake each), and the render-time options angle threshold, distance threshold and
@@ -181,7 +187,8 @@ def bake_view(st, scene, cam, size, params, workers, tree_dir) -> tuple:
     tree = bake(st, params, region, workers=workers)
     wall, cpu = time.perf_counter() - t0, _cpu_seconds() - c0
     path = Path(tree_dir) / (f"{scene.name}_{cam.name}_vp{params.viewpoint_depth}"
-                             f"_dir{params.direction_depth}_tol{params.tolerance_deg:g}.rit")
+                             f"_vr{params.viewpoint_refine}_dir{params.direction_depth}"
+                             f"_tol{params.tolerance_deg:g}.rit")
     ritree.save(tree, path)
     rec = {"viewpoint_depth": params.viewpoint_depth, "direction_depth": params.direction_depth,
            "viewpoint_refine": params.viewpoint_refine,
@@ -196,8 +203,9 @@ def _tracer_delta(st, before):
     return {k: st.tracer.stats[k] - before[k] for k in TRACER_KEYS}
 
 
-def measure_pass(st, tree, cam, size, options, order=0, workers=None) -> dict:
-    """One interleaved pass (see the module doc): every chunk through the tree and exactly.
+def measure_pass(st, tree, cam, size, options, order=0) -> dict:
+    """One interleaved pass in this process (see the module doc): every share through the tree
+    and exactly.
     ``order`` 0: tree first, 1: exact first. Returns per-mode stats, answers, errors, images."""
     query = TreeQuery(tree, st, options)
     o, d = camera_rays(cam, size, size)
@@ -238,8 +246,7 @@ def measure_pass(st, tree, cam, size, options, order=0, workers=None) -> dict:
                 "hit_disagree": int(np.sum(ri.hit != rx.hit))}
 
     t0 = time.perf_counter()
-    workers = workers_default() if workers is None else workers
-    parts = map_chunks(work, len(o), share_size(len(o), workers), workers)
+    parts = map_chunks(work, len(o), share_size(len(o), 1), 1)
     wall = time.perf_counter() - t0
     s_i, s_x = _sum(p["s_i"] for p in parts), _sum(p["s_x"] for p in parts)
     answers = np.concatenate([p["answers"] for p in parts])
@@ -283,14 +290,25 @@ def _errors(p) -> dict:
             "hit_disagreements": p["hit_disagree"]}
 
 
-def measure_configs(st, tree, cam, size, configs: dict, repeats, workers) -> dict:
-    """Measure the interpolated ``configs`` ({name: QueryOptions}) against exact, interleaved:
-    ``repeats`` rounds, each a pass per config (order flipping between rounds). Returns
-    {name: row} plus "exact" (the median over every pass) and "_images"."""
-    passes = {k: [] for k in configs}
-    for r in range(repeats):
-        for k, opt in configs.items():
-            passes[k].append(measure_pass(st, tree, cam, size, opt, order=r % 2, workers=workers))
+def measure_configs(st, cam, size, configs: dict, workers) -> dict:
+    """Measure the interpolated ``configs`` ({name: (tree, QueryOptions, passes)}) against
+    exact, interleaved: every pass of every config in one batch, ``workers`` passes at a time
+    (one process each; the order flips between a config's passes and between neighbouring
+    configs). Returns {name: row} plus "exact" (the median over every pass) and "_images"."""
+    names = list(configs)
+    tasks = [(k, r) for r in range(max(c[2] for c in configs.values())) for k in names
+             if r < configs[k][2]]
+    for tree, opt, _ in configs.values():
+        TreeQuery(tree, st, opt)          # the tree's load-time work, once, before the fork
+
+    def one(a, b):
+        k, r = tasks[a]
+        tree, opt, _ = configs[k]
+        return measure_pass(st, tree, cam, size, opt, order=(r + names.index(k)) % 2)
+
+    passes = {k: [] for k in names}
+    for (k, _), p in zip(tasks, map_chunks(one, len(tasks), 1, workers)):
+        passes[k].append(p)
     all_p = [p for ps in passes.values() for p in ps]
     first = all_p[0]
     ex_obj = [p["s_x"]["object_cpu_s"] for p in all_p]
@@ -315,6 +333,8 @@ def measure_configs(st, tree, cam, size, configs: dict, repeats, workers) -> dic
         own = [query_own_cpu(q["s_i"]) for q in ps]
         own_frac = [query_own_cpu(q["s_i"]) / max(q["s_x"]["object_cpu_s"], 1e-9) for q in ps]
         rows[k] = {"rays_traced": p["rays_traced"], "object_rays": p["object_rays"],
+                   "exact_object_cpu_s": _median([q["s_x"]["object_cpu_s"] for q in ps]),
+                   "exact_total_cpu_s": _median([q["s_x"]["total_cpu_s"] for q in ps]),
                    "object_hits": int(p["s_i"]["object_hits"]),
                    "interpolated": p["interpolated"],
                    "traced_fraction": p["traced_fraction"],
@@ -388,25 +408,33 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
                 tree, brec = bake_view(st, scene, cam, cfg.size, params, workers, tree_dir)
                 log(f"{name}/{view}: baked in {brec['bake_s']:.1f} s, "
                     f"{brec['cache_bytes'] / 1e6:.2f} MB")
-                rows = measure_configs(st, tree, cam, cfg.size, _table_configs(cfg),
-                                       cfg.repeats, workers)
+                configs = {k: (tree, opt, cfg.repeats) for k, opt in _table_configs(cfg).items()}
+                deeper = None
+                if cfg.deeper_tree is not None:
+                    deeper = _bake_deeper(cfg, name, st, scene, cam, workers, tree_dir, log)
+                    configs["deeper"] = (deeper[0], QueryOptions(), cfg.repeats)
+                points = []
+                if cfg.sweeps and view == cfg.sweep_view and name not in cfg.sweep_scenes:
+                    # the policy curves of every scene's Pareto plot, on the table tree (the
+                    # swept scenes get theirs with their sweeps)
+                    points = [(tree, brec, *pt) for pt in _policy_points(cfg)]
+                    configs.update(_point_configs(cfg, points))
+                rows = measure_configs(st, cam, cfg.size, configs, workers)
                 images = rows.pop("_images")
                 if cfg.images:
                     _save_images(out / "images", f"{name}_{view}", images)
-                for kind in (k for k in ROWS if k in rows):
+                for kind in (k for k in ROWS if k in rows and k != "deeper"):
                     tables.append({"scene": name, "view": view, "row": kind,
                                    "label": ROW_LABELS[kind].format(angle=cfg.angle),
                                    **_strip(rows[kind]), **_bake_cols(brec)})
                 r = rows["interp_angle"]
                 log(f"{name}/{view}: traced {r['rays_traced']}/{r['object_rays']}, object-only "
                     f"{rows['exact']['object_cpu_s']:.2f} -> {r['object_cpu_s']:.2f} s")
-                if cfg.sweeps and view == cfg.sweep_view and name not in cfg.sweep_scenes:
-                    # the policy curves of every scene's Pareto plot, on the table tree (the
-                    # swept scenes get theirs with their sweeps)
-                    sweeps += _policy_sweeps(cfg, name, st, cam, tree, brec, workers, log)
+                if deeper is not None:
+                    tables.append(_deeper_row(cfg, name, cam, rows["deeper"], deeper[1], log))
+                    _drop_tree(*deeper, cfg)
+                sweeps += _point_rows(cfg, name, points, rows, log)
                 _drop_tree(tree, brec, cfg)
-                if cfg.deeper_tree is not None:
-                    tables.append(_deeper_row(cfg, name, st, scene, cam, workers, tree_dir, log))
         if cfg.sweeps:
             for name in cfg.sweep_scenes:
                 sweeps += _sweep_scene(cfg, name, workers, tree_dir, log)
@@ -426,18 +454,22 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
     return result
 
 
-def _deeper_row(cfg, name, st, scene, cam, workers, tree_dir, log) -> dict:
-    """The "deeper" row: the default options on the view's tree baked at ``cfg.deeper_tree``'s
-    depths, against its own interleaved exact passes (its speed-up is of the same run)."""
+def _bake_deeper(cfg, name, st, scene, cam, workers, tree_dir, log) -> tuple:
+    """The view's tree baked at ``cfg.deeper_tree``'s depths: (tree, bake record)."""
     vp, dd, vr = cfg.deeper_tree
     tree, brec = bake_view(st, scene, cam, cfg.size, cfg.bake_params(vp, dd, cfg.tolerance, vr),
                            workers, tree_dir)
-    rows = measure_configs(st, tree, cam, cfg.size, {"deeper": QueryOptions()}, cfg.repeats,
-                           workers)
-    r = rows["deeper"]
-    log(f"{name}/{cam.name}: deeper tree baked in {brec['bake_s']:.1f} s, traced "
-        f"{r['rays_traced']}/{r['object_rays']}, object-only {r['object_cpu_s']:.2f} s")
-    _drop_tree(tree, brec, cfg)
+    log(f"{name}/{cam.name}: deeper tree baked in {brec['bake_s']:.1f} s, "
+        f"{brec['cache_bytes'] / 1e6:.2f} MB")
+    return tree, brec
+
+
+def _deeper_row(cfg, name, cam, r, brec, log) -> dict:
+    """The "deeper" row: the default options on the deeper tree, measured in the view's batch
+    against its own interleaved exact halves (its speed-up is of the same passes)."""
+    vp, dd, vr = cfg.deeper_tree
+    log(f"{name}/{cam.name}: deeper tree traced {r['rays_traced']}/{r['object_rays']}, "
+        f"object-only {r['exact_object_cpu_s']:.2f} -> {r['object_cpu_s']:.2f} s", step=False)
     return {"scene": name, "view": cam.name, "row": "deeper",
             "label": ROW_LABELS["deeper"].format(vp=vp, dd=dd, vr=vr),
             **_strip(r), **_bake_cols(brec)}
@@ -459,17 +491,25 @@ def _drop_tree(tree, brec, cfg):
         Path(brec["tree_path"]).unlink(missing_ok=True)
 
 
-def _sweep_row(cfg, name, st, cam, sweep, tree, brec, opt, key, workers, log) -> dict:
-    """One sweep point: ``opt`` on ``tree`` against exact, interleaved (cfg.sweep_repeats)."""
-    r = measure_configs(st, tree, cam, cfg.size, {"x": opt}, cfg.sweep_repeats, workers)
-    x, e = _strip(r["x"]), _strip(r["exact"])
-    log(f"{name}/{cfg.sweep_view} {sweep} {key}: traced {x['traced_fraction']:.1%}, "
-        f"err {_err3(x)} deg, PSNR {x['psnr_db']:.1f} dB")
-    return {"scene": name, "view": cfg.sweep_view, "sweep": sweep, **_bake_cols(brec),
-            "policy": opt.policy, "angle": opt.angle_deg, "distance": opt.distance,
-            "extrapolation": opt.extrapolation, "max_error": opt.max_error_deg,
-            "path_identity": opt.path_identity, **x,
-            "exact_object_cpu_s": e["object_cpu_s"], "exact_total_cpu_s": e["total_cpu_s"]}
+def _point_configs(cfg, points) -> dict:
+    """measure_configs' entries of sweep ``points`` [(tree, bake record, sweep, key, options)]:
+    cfg.sweep_repeats passes each."""
+    return {f"point{i}": (pt[0], pt[4], cfg.sweep_repeats) for i, pt in enumerate(points)}
+
+
+def _point_rows(cfg, name, points, rows, log) -> list:
+    """Sweep rows of ``points`` from measure_configs' ``rows`` (each point against its own
+    interleaved exact halves)."""
+    out = []
+    for i, (_, brec, sweep, key, opt) in enumerate(points):
+        x = _strip(rows[f"point{i}"])
+        log(f"{name}/{cfg.sweep_view} {sweep} {key}: traced {x['traced_fraction']:.1%}, "
+            f"err {_err3(x)} deg, PSNR {x['psnr_db']:.1f} dB")
+        out.append({"scene": name, "view": cfg.sweep_view, "sweep": sweep, **_bake_cols(brec),
+                    "policy": opt.policy, "angle": opt.angle_deg, "distance": opt.distance,
+                    "extrapolation": opt.extrapolation, "max_error": opt.max_error_deg,
+                    "path_identity": opt.path_identity, **x})
+    return out
 
 
 # The render-time policies compared on every scene's Pareto plot (one tree, no re-bake).
@@ -484,61 +524,44 @@ def _policy_points(cfg) -> list:
             + [("raytree", "Bala et al.", paper(policy="raytree", angle_deg=None))])
 
 
-def _policy_sweeps(cfg, name, st, cam, tree, brec, workers, log) -> list:
-    return [_sweep_row(cfg, name, st, cam, sweep, tree, brec, opt, key, workers, log)
-            for sweep, key, opt in _policy_points(cfg)]
-
-
 def _sweep_scene(cfg, name, workers, tree_dir, log) -> list:
+    """Every sweep of scene ``name``: the depth and tolerance trees are baked first, then all
+    points are measured in one batch."""
     scene = build(name)
     st = SceneTracer(scene)
     cam = scene.camera(cfg.sweep_view)
-    rows = []
-    base = (cfg.viewpoint_depth, cfg.direction_depth, cfg.tolerance)
     default = paper(angle_deg=cfg.angle)
-    base_tree = None
-
-    def record(sweep, tree, brec, opt, key):
-        rows.append(_sweep_row(cfg, name, st, cam, sweep, tree, brec, opt, key, workers, log))
+    trees = {}
 
     def baked(vp, dd, tol):
-        tree, brec = bake_view(st, scene, cam, cfg.size, cfg.bake_params(vp, dd, tol), workers,
-                               tree_dir)
-        log(f"{name}/{cfg.sweep_view} bake vp {vp} dir {dd} tol {tol:g}: {brec['bake_s']:.1f} s, "
-            f"{brec['cache_bytes'] / 1e6:.2f} MB")
-        return tree, brec
+        if (vp, dd, tol) in trees:
+            log(f"{name}/{cfg.sweep_view} vp {vp} dir {dd} tol {tol:g}: baked already")
+        else:
+            trees[vp, dd, tol] = bake_view(st, scene, cam, cfg.size,
+                                           cfg.bake_params(vp, dd, tol), workers, tree_dir)
+            brec = trees[vp, dd, tol][1]
+            log(f"{name}/{cfg.sweep_view} bake vp {vp} dir {dd} tol {tol:g}: "
+                f"{brec['bake_s']:.1f} s, {brec['cache_bytes'] / 1e6:.2f} MB")
+        return trees[vp, dd, tol]
 
-    for vp in cfg.vp_depths:
-        for dd in cfg.dir_depths:
-            tree, brec = baked(vp, dd, cfg.tolerance)
-            record("depth", tree, brec, default, f"vp {vp} dir {dd}")
-            if (vp, dd, cfg.tolerance) == base:
-                base_tree = (tree, brec)
-            else:
-                _drop_tree(tree, brec, cfg)
-    for tol in cfg.tolerances:
-        if (cfg.viewpoint_depth, cfg.direction_depth, tol) == base and base_tree is not None:
-            tree, brec = base_tree
-            log("(tolerance sweep reuses the base tree)")
-        else:
-            tree, brec = baked(cfg.viewpoint_depth, cfg.direction_depth, tol)
-        record("tolerance", tree, brec, default, f"tol {tol:g}")
-        if (cfg.viewpoint_depth, cfg.direction_depth, tol) == base:
-            base_tree = (tree, brec)
-        else:
-            _drop_tree(tree, brec, cfg)
-    if base_tree is None:
-        base_tree = baked(*base)
-    tree, brec = base_tree
-    for dist in cfg.distances:
-        record("distance", tree, brec, paper(angle_deg=None, distance=dist),
-               f"{dist}")
-    for ex in cfg.extrapolations:
-        record("extrapolation", tree, brec, paper(angle_deg=cfg.angle, extrapolation=ex),
-               f"{ex}")
-    rows += _policy_sweeps(cfg, name, st, cam, tree, brec, workers, log)
-    _drop_tree(tree, brec, cfg)
-    return rows
+    points = [(*baked(vp, dd, cfg.tolerance), "depth", f"vp {vp} dir {dd}", default)
+              for vp in cfg.vp_depths for dd in cfg.dir_depths]
+    points += [(*baked(cfg.viewpoint_depth, cfg.direction_depth, tol), "tolerance",
+                f"tol {tol:g}", default) for tol in cfg.tolerances]
+    base = (cfg.viewpoint_depth, cfg.direction_depth, cfg.tolerance)
+    if base not in trees:
+        baked(*base)
+    tree, brec = trees[base]
+    points += [(tree, brec, "distance", f"{dist}", paper(angle_deg=None, distance=dist))
+               for dist in cfg.distances]
+    points += [(tree, brec, "extrapolation", f"{ex}", paper(angle_deg=cfg.angle, extrapolation=ex))
+               for ex in cfg.extrapolations]
+    points += [(tree, brec, *pt) for pt in _policy_points(cfg)]
+    rows = measure_configs(st, cam, cfg.size, _point_configs(cfg, points), workers)
+    out = _point_rows(cfg, name, points, rows, log)
+    for t in trees.values():
+        _drop_tree(*t, cfg)
+    return out
 
 
 def amortization(tables) -> list:

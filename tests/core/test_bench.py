@@ -136,3 +136,31 @@ def test_bad_options(capsys):
     assert main(["bench", "--size", "1", "--out", "unused"]) == 2
     assert "size" in capsys.readouterr().err
     assert main(["bench", "--quick", "--repeats", "0", "--out", "unused"]) == 2
+
+
+def test_passes_run_per_config_in_parallel(tmp_path):
+    """measure_configs runs each pass whole in one process, two processes at a time: every
+    config's row is made of its own passes on its own tree (same answers and errors as the
+    config measured alone in this process), as many as it asks for, each with its own exact
+    half."""
+    from riray.bench.ritree_bench import bake_view, measure_configs, measure_pass, paper
+    from riray.render.exact import SceneTracer
+    from riray.scene.samples import build
+
+    scene = build("glass_sphere")
+    st, cam = SceneTracer(scene), scene.camera("close")
+    tree, _ = bake_view(st, scene, cam, 24, BenchConfig().bake_params(3, 4, 0.5, 1), 1,
+                        tmp_path)
+    other, _ = bake_view(st, scene, cam, 24, BenchConfig().bake_params(2, 4, 0.5, 1), 1,
+                         tmp_path)
+    configs = {"off": (tree, paper(angle_deg=None), 2), "10": (tree, paper(angle_deg=10.0), 1),
+               "20": (tree, paper(angle_deg=20.0), 3), "other": (other, paper(angle_deg=20.0), 2)}
+    rows = measure_configs(st, cam, 24, configs, workers=2)
+    alone = {k: measure_pass(st, t, cam, 24, opt) for k, (t, opt, _) in configs.items()}
+    assert len({alone[k]["rays_traced"] for k in configs}) == len(configs)   # all differ
+    for k, (_, _, n) in configs.items():
+        assert rows[k]["rays_traced"] == alone[k]["rays_traced"], k
+        assert rows[k]["angle_max_deg"] == pytest.approx(float(alone[k]["err"].max()), abs=1e-9)
+        assert len(rows[k]["object_cpu_s_all"]) == n
+        assert rows[k]["exact_object_cpu_s"] > 0
+    assert len(rows["exact"]["object_cpu_s_all"]) == 8
