@@ -6,8 +6,8 @@ is baked for that camera and five rows are measured: *exact* (every object ray t
 *interpolated* without an angle threshold, *interpolated* with the angle threshold,
 *interpolated* with the default baked-error tolerance, and the *raytree* policy (Bala et al.'s
 identical-ray-tree rule); a sixth, *deeper*, is the default tolerance on a second tree for the
-camera baked at ``deeper_tree``'s depths, against its own exact passes. Columns: rays traced, object-only and
-total CPU seconds (the paper's split, summed over the worker processes' chunks) and a
+camera baked at ``deeper_tree``'s depths, against its own exact passes. Columns: rays traced,
+object-only and total CPU seconds (the paper's split, summed over a pass's shares) and a
 machine-independent work count - flat-sub-patch pairs solved by Newton and Newton iterations
 (tracing), samples gathered (interpolation: 16 per ray looked up in the tree, 2 more per ray
 answered from a leaf's extra samples) - because wall time on a shared machine is noisy.
@@ -566,10 +566,11 @@ def _sweep_scene(cfg, name, workers, tree_dir, log) -> list:
 
 def amortization(tables) -> list:
     """Per table view and interpolated row ("interp": no angle threshold, "interp_angle": with
-    it, "interp_tol": the default tolerance, "deeper": it on the deeper tree): bake CPU seconds, per-frame total CPU seconds
-    exact and interpolated, and the break-even frame count N* = bake / (exact - interpolated), the smallest N for which bake + N
-    interpolated frames cost no more than N exact frames (None where interpolation saves
-    nothing per frame: it never pays)."""
+    it, "interp_tol": the default tolerance, "deeper": it on the deeper tree): bake CPU
+    seconds, per-frame total CPU seconds exact and interpolated, and the break-even frame count
+    N* = bake / (exact - interpolated), the smallest N for which bake + N interpolated frames
+    cost no more than N exact frames (None where interpolation saves nothing per frame: it
+    never pays)."""
     out = []
     by = {}
     for r in tables:

@@ -422,6 +422,25 @@ class _Baker:
         r = self.rect[tr]
         return (u_hi >= r[:, 0]) & (u_lo <= r[:, 1]) & (v_hi >= r[:, 2]) & (v_lo <= r[:, 3])
 
+    def _hidden_hits(self, nodes, tr, ms):
+        """BOUNDARY for the direction cells ``nodes`` whose corners and traced midpoints ``ms``
+        all miss while their frustum (the rays from their viewpoint through the cell) meets the
+        box of some sub-patch or triangle of the object: a hit may lie between the samples
+        (paper Fig. 9(b)), so the render checks the cell's misses."""
+        out = np.zeros(len(nodes), np.uint8)
+        i = np.flatnonzero(np.all(self.samples.patch[self.dirf.corner[nodes]] < 0, axis=1)
+                           & (ms.patch < 0))
+        if len(i) == 0:
+            return out
+        cc = self.dirf.corner_coords(nodes[i], self.M)
+        u0, v0 = self.uv_of(tr[i], cc[:, 0])
+        u1, v1 = self.uv_of(tr[i], cc[:, 3])
+        vp, cube = self._tree_vp_cube(tr[i])
+        seen = rects_see_object(self.st.tracer, self.vp_pos[vp], cube,
+                                np.stack([u0, u1, v0, v1], axis=1))
+        out[i[seen]] = BOUNDARY
+        return out
+
     def _bake_directions(self, trees):
         """Adaptive direction trees (paper 3.3) for ``trees``, all trees of a level at once
         (on the cluster's workers, shard by shard, when there is one)."""
@@ -455,6 +474,7 @@ class _Baker:
                                         np.broadcast_to(UNIT_CORNERS[:, 1], (len(tr), 4)))
                 split, err, flags = _midpoint_test(self.samples, dirf.corner[nodes], scale, ms,
                                                    self.class_of, tol_ang, tol_d)
+                flags |= self._hidden_hits(nodes, tr, ms)
                 self._record(nodes, err, flags | np.where(split & (level == M), UNVERIFIED, 0))
                 if level == M:
                     break
@@ -764,38 +784,58 @@ def _midpoint_test(samples, corner, scale, ms: Samples, class_of, tol_ang, tol_d
 
 def _slots_seeing(vp_pos, vface, lo, hi):
     """(V, 5) whether the object's box [lo, hi] meets each hemicube slot's frustum from each
-    viewpoint (conservative). The slot's cube face has axis b: the part of the box in front of
-    the viewpoint along b is again a box; its corners projected onto the cube face bound its
-    image, which must overlap the slot's domain."""
+    viewpoint (conservative, ``project_boxes``)."""
     V = len(vp_pos)
     out = np.zeros((V, N_SLOTS), bool)
-    corners = np.array([[(i >> k) & 1 for k in range(3)] for i in range(8)], bool)   # (8, 3)
+    ext = np.max(hi - lo)
     for s in range(N_SLOTS):
-        cube = CUBE[vface, s]                                              # (V,)
-        b = cube // 2
-        sign = np.where(cube % 2 == 1, 1.0, -1.0)
-        rows = np.arange(V)
-        p_b = vp_pos[rows, b]
-        # clip the box to depth = sign (x_b - p_b) >= SLOT_MIN_DEPTH * extent
-        ext = np.max(hi - lo) + 1e-300
-        lo_c = np.tile(lo, (V, 1))
-        hi_c = np.tile(hi, (V, 1))
-        front = p_b + sign * SLOT_MIN_DEPTH * ext
-        lo_c[rows, b] = np.where(sign > 0, np.maximum(lo[b], front), lo[b])
-        hi_c[rows, b] = np.where(sign > 0, hi[b], np.minimum(hi[b], front))
-        ok = lo_c[rows, b] <= hi_c[rows, b]
-        pts = np.where(corners[None], hi_c[:, None, :], lo_c[:, None, :])   # (V, 8, 3)
-        rel = pts - vp_pos[:, None, :]
-        depth = sign[:, None] * rel[rows[:, None], np.arange(8)[None], b[:, None]]
-        ua = np.array([p[0] for p in UV_AXES])[b]
-        va = np.array([p[1] for p in UV_AXES])[b]
-        depth = np.where(ok[:, None], depth, 1.0)          # rows without a front part: unused
-        u = rel[rows[:, None], np.arange(8)[None], ua[:, None]] / depth
-        v = rel[rows[:, None], np.arange(8)[None], va[:, None]] / depth
         dom = DOMAIN[vface, s]
-        out[:, s] = ok & (u.max(1) >= dom[:, 0]) & (u.min(1) <= dom[:, 1]) \
-            & (v.max(1) >= dom[:, 2]) & (v.min(1) <= dom[:, 3])
+        out[:, s] = rect_sees_boxes(vp_pos, CUBE[vface, s], dom, np.broadcast_to(lo, (V, 3)),
+                                    np.broadcast_to(hi, (V, 3)), ext)
     return out
+
+
+def rects_see_object(tracer, p, cube, rect):
+    """(k,) whether some ray from ``p`` (k, 3) through cube-face rectangles ``rect`` (k, 4) on
+    faces ``cube`` (k,) may meet the object of ``tracer`` (trace.patches.PatchTracer):
+    conservative, on the boxes of its flat sub-patches and triangles (its BVHs)."""
+    out = np.zeros(len(p), bool)
+    bvhs = [tracer.bvh] + ([tracer.meshes.bvh] if tracer.meshes is not None else [])
+    for bvh in (b for b in bvhs if b is not None):
+        out |= bvh.any_box(len(p), lambda q, lo, hi: rect_sees_boxes(p[q], cube[q], rect[q], lo,
+                                                                     hi, tracer.diag))
+    return out
+
+
+def rect_sees_boxes(p, cube, rect, lo, hi, ext):
+    """(k,) whether some ray from points ``p`` (k, 3) with a direction in the cube-face
+    rectangle ``rect`` (k, 4: u0, u1, v0, v1 on cube faces ``cube`` (k,)) may meet the boxes
+    [lo, hi] (k, 3) (conservative). The face has axis b: the part of a box in front of p along b
+    (depth >= SLOT_MIN_DEPTH * ``ext``) is again a box, the central projection of its corners
+    bounds its image on the face, and that bound must overlap the rectangle."""
+    k = len(p)
+    rows = np.arange(k)
+    b = cube // 2
+    sign = np.where(cube % 2 == 1, 1.0, -1.0)
+    p_b = p[rows, b]
+    front = p_b + sign * SLOT_MIN_DEPTH * (ext + 1e-300)
+    lo_c, hi_c = np.array(lo, np.float64), np.array(hi, np.float64)
+    lo_c[rows, b] = np.where(sign > 0, np.maximum(lo_c[rows, b], front), lo_c[rows, b])
+    hi_c[rows, b] = np.where(sign > 0, hi_c[rows, b], np.minimum(hi_c[rows, b], front))
+    ok = lo_c[rows, b] <= hi_c[rows, b]
+    pts = np.where(_BOX_CORNERS[None], hi_c[:, None, :], lo_c[:, None, :])    # (k, 8, 3)
+    rel = pts - p[:, None, :]
+    col = np.arange(8)[None]
+    depth = np.where(ok[:, None], sign[:, None] * rel[rows[:, None], col, b[:, None]], 1.0)
+    u = rel[rows[:, None], col, _UA[b][:, None]] / depth
+    v = rel[rows[:, None], col, _VA[b][:, None]] / depth
+    return ok & (u.max(1) >= rect[:, 0]) & (u.min(1) <= rect[:, 1]) \
+        & (v.max(1) >= rect[:, 2]) & (v.min(1) <= rect[:, 3])
+
+
+_BOX_CORNERS = np.array([[(i >> k) & 1 for k in range(3)] for i in range(8)], bool)   # (8, 3)
+_UA = np.array([a for a, _ in UV_AXES])
+_VA = np.array([b for _, b in UV_AXES])
 
 
 def _extras(dirf, leaves, samples, class_of, trace, uv_of, tree_of, M, steps, add, stage):

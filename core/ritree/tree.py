@@ -29,6 +29,7 @@ TREE_LAYOUT = 2
 UNVERIFIED = 1    # the cell failed its test (error above the tolerance, a class or null state its
                   # corners do not share, no interpolation) and could not be split further
 BOUNDARY = 2      # an object/miss boundary crosses it: corners or test rays both hit and miss
+                  # (or, direction cells, all miss while their frustum meets the object's boxes)
 PATH_CHANGE = 4   # its corners or test rays do not all share one ray-tree hash (event sequence)
 
 

@@ -224,6 +224,36 @@ class BVH:
         order = np.lexsort((t_enter, ray_idx))
         return ray_idx[order], prim_idx[order], t_enter[order]
 
+    def any_box(self, n: int, meets, max_pairs: int = MAX_PAIRS) -> np.ndarray:
+        """(n,) bool: for queries 0..n-1, whether some primitive's box passes ``meets(q, lo,
+        hi)`` (query ids q (k,), boxes lo, hi (k, 3) -> (k,) bool). ``meets`` must hold for a
+        box whenever it holds for a box inside it: node boxes prune with it."""
+        out = np.zeros(n, bool)
+        if n == 0 or self.num_nodes == 0:
+            return out
+        stack = [(np.arange(n), np.zeros(n, dtype=np.int64))]
+        while stack:
+            q, nd = stack.pop()
+            if len(q) > max_pairs:
+                stack.append((q[max_pairs:], nd[max_pairs:]))
+                q, nd = q[:max_pairs], nd[:max_pairs]
+            live = ~out[q]
+            q, nd = q[live], nd[live]
+            keep = meets(q, self.node_lo[:, nd].T, self.node_hi[:, nd].T)
+            q, nd = q[keep], nd[keep]
+            ch = self.child[nd]
+            leaf = ch < 0
+            if leaf.any():
+                ln = nd[leaf]
+                cnt = self.prim_count[ln]
+                pos = _ranges(self.prim_start[ln], cnt)
+                lq = np.repeat(q[leaf], cnt)
+                out[lq[meets(lq, self.leaf_lo[:, pos].T, self.leaf_hi[:, pos].T)]] = True
+            inner = ~leaf
+            if inner.any():
+                stack.append((np.repeat(q[inner], 2), (ch[inner][:, None] + np.arange(2)).ravel()))
+        return out
+
     def closest_hit(self, origins, dirs, tmin, tmax, hit_fn, max_pairs: int = MAX_PAIRS):
         """Closest primitive hit per ray. ``hit_fn(ray_idx, prim_idx) -> t`` (inf for a miss;
         it must honour each ray's [tmin, tmax]). Leaves are tested as the wavefront reaches

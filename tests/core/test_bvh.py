@@ -117,3 +117,22 @@ def test_closest_and_any_hit_with_callback(seed):
     assert np.array_equal(prim >= 0, found)
     np.testing.assert_array_equal(t_hit[np.flatnonzero(found), prim[found]], t[found])
     assert np.array_equal(bvh.any_hit(o, d, tmin, tmax, fn), found)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_any_box_equals_brute_force(seed):
+    """any_box with a box-overlap predicate (one that a node box passes whenever a box inside
+    it does) finds the same queries as testing every primitive box."""
+    lo, hi, _, _, _, _ = random_case(seed)
+    rng = np.random.default_rng(seed + 10)
+    c = rng.uniform(-6, 6, (500, 3))
+    qlo, qhi = c - rng.uniform(0, 0.6, (500, 3)), c + rng.uniform(0, 0.6, (500, 3))
+
+    def meets(q, blo, bhi):
+        return np.all((blo <= qhi[q]) & (bhi >= qlo[q]), axis=1)
+
+    bvh = BVH.build(lo, hi, leaf_size=4)
+    got = bvh.any_box(len(c), meets, max_pairs=101)             # exercises chunking
+    want = np.all((lo[None] <= qhi[:, None]) & (hi[None] >= qlo[:, None]), axis=2).any(1)
+    assert 0 < want.sum() < len(c)
+    np.testing.assert_array_equal(got, want)
