@@ -170,6 +170,31 @@ class BVH:
                    child, pstart, pcount, perm,
                    np.ascontiguousarray(lo[perm].T), np.ascontiguousarray(hi[perm].T))
 
+    def _walk(self, n: int, node_meets, max_pairs: int, done=None):
+        """The wavefront of (query, node) pairs from the root, ``max_pairs`` at a time: a pair
+        goes on down while ``node_meets(q, nodes)`` holds; at a leaf, yields (queries, positions
+        in leaf order) of its primitives, one row per (query, primitive). Queries set in
+        ``done`` (read as the walk goes: the caller may set it between yields) are dropped."""
+        stack = [(np.arange(n), np.zeros(n, dtype=np.int64))]
+        while stack:
+            q, nd = stack.pop()
+            if len(q) > max_pairs:
+                stack.append((q[max_pairs:], nd[max_pairs:]))
+                q, nd = q[:max_pairs], nd[:max_pairs]
+            if done is not None:
+                live = ~done[q]
+                q, nd = q[live], nd[live]
+            keep = node_meets(q, nd)
+            q, nd = q[keep], nd[keep]
+            ch = self.child[nd]
+            leaf = ch < 0
+            if leaf.any():
+                cnt = self.prim_count[nd[leaf]]
+                yield np.repeat(q[leaf], cnt), _ranges(self.prim_start[nd[leaf]], cnt)
+            inner = ~leaf
+            if inner.any():
+                stack.append((np.repeat(q[inner], 2), (ch[inner][:, None] + np.arange(2)).ravel()))
+
     def candidates(self, origins: np.ndarray, dirs: np.ndarray, tmin: np.ndarray,
                    tmax: np.ndarray, max_pairs: int = MAX_PAIRS):
         """Every (ray, primitive) whose box the segment origin + t*dir, t in [tmin, tmax],
@@ -191,31 +216,17 @@ class BVH:
         with np.errstate(divide="ignore", over="ignore"):
             inv = np.ascontiguousarray((1.0 / dirs).T)   # +-inf on zero components
         out_r, out_p, out_t = [], [], []
-        stack = [(np.arange(n), np.zeros(n, dtype=np.int64))]
-        while stack:
-            r, nd = stack.pop()
-            if len(r) > max_pairs:
-                stack.append((r[max_pairs:], nd[max_pairs:]))
-                r, nd = r[:max_pairs], nd[:max_pairs]
+
+        def node_meets(r, nd):
             t0, t1 = _slab(o, inv, self.node_lo, self.node_hi, r, nd, tmin[r], tmax[r])
-            keep = t0 <= t1
-            r, nd = r[keep], nd[keep]
-            ch = self.child[nd]
-            leaf = ch < 0
-            if leaf.any():
-                ln = nd[leaf]
-                cnt = self.prim_count[ln]
-                pos = _ranges(self.prim_start[ln], cnt)
-                lr = np.repeat(r[leaf], cnt)
-                p0, p1 = _slab(o, inv, self.leaf_lo, self.leaf_hi, lr, pos, tmin[lr], tmax[lr])
-                hit = p0 <= p1
-                out_r.append(lr[hit])
-                out_p.append(self.perm[pos[hit]])
-                out_t.append(p0[hit])
-            inner = ~leaf
-            if inner.any():
-                ir, ic = r[inner], ch[inner]
-                stack.append((np.repeat(ir, 2), (ic[:, None] + np.arange(2)).ravel()))
+            return t0 <= t1
+
+        for lr, pos in self._walk(n, node_meets, max_pairs):
+            p0, p1 = _slab(o, inv, self.leaf_lo, self.leaf_hi, lr, pos, tmin[lr], tmax[lr])
+            hit = p0 <= p1
+            out_r.append(lr[hit])
+            out_p.append(self.perm[pos[hit]])
+            out_t.append(p0[hit])
         if not out_r:
             return empty
         ray_idx = np.concatenate(out_r)
@@ -231,27 +242,10 @@ class BVH:
         out = np.zeros(n, bool)
         if n == 0 or self.num_nodes == 0:
             return out
-        stack = [(np.arange(n), np.zeros(n, dtype=np.int64))]
-        while stack:
-            q, nd = stack.pop()
-            if len(q) > max_pairs:
-                stack.append((q[max_pairs:], nd[max_pairs:]))
-                q, nd = q[:max_pairs], nd[:max_pairs]
-            live = ~out[q]
-            q, nd = q[live], nd[live]
-            keep = meets(q, self.node_lo[:, nd].T, self.node_hi[:, nd].T)
-            q, nd = q[keep], nd[keep]
-            ch = self.child[nd]
-            leaf = ch < 0
-            if leaf.any():
-                ln = nd[leaf]
-                cnt = self.prim_count[ln]
-                pos = _ranges(self.prim_start[ln], cnt)
-                lq = np.repeat(q[leaf], cnt)
-                out[lq[meets(lq, self.leaf_lo[:, pos].T, self.leaf_hi[:, pos].T)]] = True
-            inner = ~leaf
-            if inner.any():
-                stack.append((np.repeat(q[inner], 2), (ch[inner][:, None] + np.arange(2)).ravel()))
+        for lq, pos in self._walk(n, lambda q, nd: meets(q, self.node_lo[:, nd].T,
+                                                         self.node_hi[:, nd].T),
+                                  max_pairs, done=out):
+            out[lq[meets(lq, self.leaf_lo[:, pos].T, self.leaf_hi[:, pos].T)]] = True
         return out
 
     def closest_hit(self, origins, dirs, tmin, tmax, hit_fn, max_pairs: int = MAX_PAIRS):
@@ -281,40 +275,27 @@ class BVH:
         o = np.ascontiguousarray(origins.T)
         with np.errstate(divide="ignore", over="ignore"):
             inv = np.ascontiguousarray((1.0 / dirs).T)
-        stack = [(np.arange(n), np.zeros(n, dtype=np.int64))]
-        while stack:
-            r, nd = stack.pop()
-            if len(r) > max_pairs:
-                stack.append((r[max_pairs:], nd[max_pairs:]))
-                r, nd = r[:max_pairs], nd[:max_pairs]
+
+        def node_meets(r, nd):
             t0, t1 = _slab(o, inv, self.node_lo, self.node_hi, r, nd, tmin[r], best[r])
-            keep = t0 <= t1
-            r, nd = r[keep], nd[keep]
-            ch = self.child[nd]
-            leaf = ch < 0
-            if leaf.any():
-                ln = nd[leaf]
-                cnt = self.prim_count[ln]
-                lr = np.repeat(r[leaf], cnt)
-                lp = self.perm[_ranges(self.prim_start[ln], cnt)]
-                t = np.asarray(hit_fn(lr, lp), dtype=np.float64)
-                better = (t <= best[lr]) & (t < np.inf)
-                lr, lp, t = lr[better], lp[better], t[better]
-                if stop_at_first:
-                    best[lr] = -np.inf                   # prunes every remaining pair of lr
-                elif len(lr):
-                    order = np.lexsort((lp, t, lr))
-                    lr, lp, t = lr[order], lp[order], t[order]
-                    first = np.r_[True, lr[1:] != lr[:-1]]
-                    lr, lp, t = lr[first], lp[first], t[first]
-                    # equal t to an earlier best: keep the lower primitive index
-                    take = (t < best[lr]) | ~found[lr] | (lp < prim[lr])
-                    lr, lp, t = lr[take], lp[take], t[take]
-                    best[lr], prim[lr], found[lr] = t, lp, True
-            inner = ~leaf
-            if inner.any():
-                stack.append((np.repeat(r[inner], 2),
-                               (ch[inner][:, None] + np.arange(2)).ravel()))
+            return t0 <= t1
+
+        for lr, pos in self._walk(n, node_meets, max_pairs):     # reads best as it shrinks
+            lp = self.perm[pos]
+            t = np.asarray(hit_fn(lr, lp), dtype=np.float64)
+            better = (t <= best[lr]) & (t < np.inf)
+            lr, lp, t = lr[better], lp[better], t[better]
+            if stop_at_first:
+                best[lr] = -np.inf                   # prunes every remaining pair of lr
+            elif len(lr):
+                order = np.lexsort((lp, t, lr))
+                lr, lp, t = lr[order], lp[order], t[order]
+                first = np.r_[True, lr[1:] != lr[:-1]]
+                lr, lp, t = lr[first], lp[first], t[first]
+                # equal t to an earlier best: keep the lower primitive index
+                take = (t < best[lr]) | ~found[lr] | (lp < prim[lr])
+                lr, lp, t = lr[take], lp[take], t[take]
+                best[lr], prim[lr], found[lr] = t, lp, True
         if stop_at_first:
             return best, prim
         return np.where(found, best, np.inf), prim
