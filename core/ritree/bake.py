@@ -784,7 +784,7 @@ def _midpoint_test(samples, corner, scale, ms: Samples, class_of, tol_ang, tol_d
 
 def _slots_seeing(vp_pos, vface, lo, hi):
     """(V, 5) whether the object's box [lo, hi] meets each hemicube slot's frustum from each
-    viewpoint (conservative, ``project_boxes``)."""
+    viewpoint (conservative: ``rect_sees_boxes`` on the slot domains)."""
     V = len(vp_pos)
     out = np.zeros((V, N_SLOTS), bool)
     ext = np.max(hi - lo)
