@@ -81,6 +81,10 @@ def balls():
 
 
 def test_hidden_hits_are_flagged_and_checked(balls):
+    """End to end: the paper's rules answer some of the view's hits as misses, the default
+    tolerance none. (On this view the viewpoint cells' own BOUNDARY flags send most of those
+    rays to the exact check too; test_every_leaf_hiding_a_hit_is_flagged pins the direction
+    cells' rule.)"""
     st, cam, tree = balls
     o, d = camera_rays(cam, CAM_SIZE, CAM_SIZE)
     ex = st.object_function(o, d)
