@@ -9,6 +9,7 @@ rectangle [u0, u1] x [v0, v1], u = u0 + s (u1 - u0), v = v0 + t (v1 - v0).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from math import comb, cos, radians
 
 import numpy as np
@@ -242,25 +243,56 @@ def subdivide_flat(pieces: BezierPieces, flat_tol: float, max_depth: int = 12) -
 
 
 # --------------------------------------------------------------------------- evaluation
-def _bernstein(x: np.ndarray, p: int, d: int) -> np.ndarray:
-    """Bernstein polynomials B_i^p(x) and their derivatives up to order d: (n, d+1, p+1) view
-    (built row-wise, which is the fast layout)."""
-    one = 1.0 - x
-    levels = [[np.ones_like(x)]]
-    for k in range(1, p + 1):            # B^k_i = (1-x) B^{k-1}_i + x B^{k-1}_{i-1}
-        prev = levels[-1]
-        levels.append([prev[0] * one] + [prev[i] * one + prev[i - 1] * x for i in range(1, k)]
-                      + [prev[k - 1] * x])
-    out = np.zeros((d + 1, p + 1, x.shape[0]))
-    out[0] = levels[p]
-    for k in range(1, min(d, p) + 1):    # D^k B^p_i = p!/(p-k)! sum_j (-1)^(k-j) C(k,j) B^{p-k}_{i-j}
-        scale = float(np.prod(np.arange(p - k + 1, p + 1)))
-        base = levels[p - k]
+@lru_cache(maxsize=None)
+def _basis_plan(p: int, d: int):
+    """For _bernstein: power indices (xi, yi) and binomials cc (K, 1) of every B_i^m(x) =
+    C(m, i) x^i (1-x)^(m-i), m = p - k for k = 0..min(d, p) concatenated, and the matrix
+    ((d+1)(p+1), K) taking them to the derivatives D^k B^p_i = p!/(p-k)! sum_j (-1)^(k-j)
+    C(k, j) B^(p-k)_(i-j) (zero for k > p)."""
+    xi, yi, cc, blocks = [], [], [], []
+    for k in range(min(d, p) + 1):
+        m = p - k
+        xi += list(range(m + 1))
+        yi += [m - i for i in range(m + 1)]
+        cc += [comb(m, i) for i in range(m + 1)]
+        blocks.append((k, m))
+    mat = np.zeros((len(xi), d + 1, p + 1))
+    row = 0
+    for k, m in blocks:
+        scale = float(np.prod(np.arange(m + 1, p + 1)))
         for i in range(p + 1):
             for j in range(k + 1):
-                if 0 <= i - j <= p - k:
-                    out[k, i] += (scale * (-1) ** (k - j) * comb(k, j)) * base[i - j]
-    return out.transpose(2, 0, 1)
+                if 0 <= i - j <= m:
+                    mat[row + i - j, k, i] += scale * (-1) ** (k - j) * comb(k, j)
+        row += m + 1
+    return (np.array(xi), np.array(yi), np.array(cc, np.float64)[:, None],
+            np.ascontiguousarray(mat.reshape(len(xi), (d + 1) * (p + 1)).T))
+
+def _bernstein(x: np.ndarray, p: int, d: int) -> np.ndarray:
+    """Bernstein polynomials B_i^p(x) and their derivatives up to order d: (n, d+1, p+1) view.
+    Each B_i^m is a product of powers (no cancellation), the derivatives one matrix product
+    of them: a fixed handful of array operations, whatever p (small batches pay little)."""
+    xi, yi, cc, matT = _basis_plan(p, d)
+    pw = np.empty((2, p + 1, len(x)))               # x^j and (1-x)^j, j = 0..p (row-wise)
+    pw[:, 0] = 1.0
+    if p:
+        pw[0, 1] = x
+        np.subtract(1.0, x, out=pw[1, 1])
+    for j in range(2, p + 1):
+        np.multiply(pw[:, j - 1], pw[:, 1], out=pw[:, j])
+    basis = pw[0][xi] * pw[1][yi] * cc                                      # (K, n)
+    return (matT @ basis).reshape(d + 1, p + 1, len(x)).transpose(2, 0, 1)
+
+
+def tensor_weights(s, t, p: int, q: int, derivatives: int = 1) -> np.ndarray:
+    """Tensor-product Bernstein weights of a degree (p, q) net at (s, t) (n,), for each
+    partial of ``partial_orders(derivatives)``: (n, partials, (p+1)(q+1)), so that
+    ``tensor_weights(...) @ net.reshape(n, -1, c)`` evaluates every partial of a net of
+    c-vectors at once."""
+    orders = partial_orders(derivatives)
+    bu = _bernstein(s, p, derivatives)[:, [k for k, _ in orders]]
+    bv = _bernstein(t, q, derivatives)[:, [l for _, l in orders]]
+    return np.einsum("nka,nkb->nkab", bu, bv).reshape(len(s), len(orders), -1)
 
 
 def bezier_eval(ctrl: np.ndarray, s, t, derivatives: int = 1,
@@ -285,18 +317,13 @@ def bezier_eval(ctrl: np.ndarray, s, t, derivatives: int = 1,
                          f"got {n_all}, {t.shape[0]}, {rows}")
     p, q = ctrl.shape[1] - 1, ctrl.shape[2] - 1
     npart = len(orders)
-    sel_u = [k for k, _ in orders]
-    sel_v = [l for _, l in orders]
     out = [np.empty((n_all, 3)) for _ in range(npart)]
     block = max(1, min(BEZIER_BLOCK, n_all))
-    wbuf = np.empty((block, npart, p + 1, q + 1))
     hbuf = np.empty((block, npart, 4))
     for b in range(0, n_all, block):
         e = min(b + block, n_all)
         n = e - b
-        bu = _bernstein(s[b:e], p, derivatives)[:, sel_u]
-        bv = _bernstein(t[b:e], q, derivatives)[:, sel_v]
-        weights = np.einsum("nka,nkb->nkab", bu, bv, out=wbuf[:n]).reshape(n, npart, -1)
+        weights = tensor_weights(s[b:e], t[b:e], p, q, derivatives)
         nets = ctrl[b:e] if index is None else ctrl[index[b:e]]
         h = np.matmul(weights, nets.reshape(n, -1, 4), out=hbuf[:n])
         for dst, src in zip(out, rational_derivatives([h[:, i] for i in range(npart)],

@@ -63,8 +63,10 @@ T_MIN_REL = 1e-9
 # |Ss x St| below this (relative to (|Ss| + |St|)^2) marks a degenerate point (pole, collapsed edge):
 # the normal comes from the geometry's limit-normal evaluation instead.
 DEGENERATE_REL = 1e-9
+# Newton runs iterated together: their working arrays (~1 kB a run) stay in a core's cache.
+NEWTON_BLOCK = 4096
 # Pairs solved per batch (bounds memory: a degree-5 pair gathers 36 x 4 float64 control values).
-PAIR_CHUNK = 1 << 16
+PAIR_CHUNK = 1 << 14
 # Angular slack (rad) of the end-on hull test: a line within rounding of the hull's boundary
 # (or through a control point, angle of a zero vector) counts as meeting it.
 HULL_GAP_SLACK = 1e-9
@@ -261,18 +263,15 @@ class PatchTracer:
         if len(r) == 0:
             return
         ro, rd = o[r], d[r]
-        n1, n2 = _ray_planes(rd)
-        c1 = np.einsum("ij,ij->i", n1, ro)
-        c2 = np.einsum("ij,ij->i", n2, ro)
-        meet = _hull_meets(ctrl, n1, c1, n2, c2)
+        f = _project(ctrl, ro, rd)
+        meet = _hull_meets(f)
         if not meet.all():
-            r, ctrl, sp, box, ro, rd, n1, n2, c1, c2 = (
-                x[meet] for x in (r, ctrl, sp, box, ro, rd, n1, n2, c1, c2))
+            r, ctrl, sp, box, ro, rd, f = (x[meet] for x in (r, ctrl, sp, box, ro, rd, f))
             if len(r) == 0:
                 return
         self.stats["pairs"] += len(r)
         s, t = _seed(ctrl, ro, rd)
-        ok = self._newton(ctrl, s, t, n1, c1, n2, c2)
+        ok = self._newton(f, ctrl.shape[1] - 1, ctrl.shape[2] - 1, s, t)
         in_net = (s >= -PARAM_MARGIN) & (s <= 1 + PARAM_MARGIN) & (t >= -PARAM_MARGIN) \
             & (t <= 1 + PARAM_MARGIN)
         # no root at all, or a root outside the net (another root may hide in it: a grazing
@@ -286,28 +285,40 @@ class PatchTracer:
             self._subdivide(o, d, tmin, best_t, res, r, ctrl, grp, sp, box, levels,
                             np.flatnonzero(retry))
 
-    def _newton(self, ctrl, s, t, n1, c1, n2, c2):
-        """Newton iterations in place on (s, t) for the ray planes (n1.x = c1, n2.x = c2);
-        returns the converged mask. Steps are damped to MAX_STEP; runs that leave [-1, 2]^2 or
-        meet a singular Jacobian stop unconverged."""
+    def _newton(self, f, p, q, s, t):
+        """Newton iterations in place on (s, t) for nets of degree (p, q) projected onto their
+        rays' planes (``_project``: f (n, (p+1)(q+1), 3)); returns the converged mask. Steps
+        are damped to MAX_STEP; runs that leave [-1, 2]^2 or meet a singular Jacobian stop
+        unconverged. The live runs are kept packed (no per-iteration gathers).
+
+        With A, B, W the projected nets' values, the ray planes' residuals are f1 = A / W,
+        f2 = B / W (distances of the surface point from the planes) and their partials
+        (A_s - W_s f1) / W etc.: the rational surface's, without forming its points."""
+        ok = np.zeros(len(s), bool)
+        for b in range(0, len(s), NEWTON_BLOCK):          # blocks stay in cache
+            e = min(b + NEWTON_BLOCK, len(s))
+            ok[b:e] = self._newton_block(f[b:e], p, q, s[b:e], t[b:e])
+        return ok
+
+    def _newton_block(self, f, p, q, s, t):
+        """_newton on one block (s, t: views, updated in place)."""
         tol = NEWTON_TOL_REL * self.diag
         ok = np.zeros(len(s), bool)
-        live = np.ones(len(s), bool)
+        act = np.arange(len(s))
+        fa, ss, tt = f, s.copy(), t.copy()
         for _ in range(NEWTON_ITERS):
-            li = np.flatnonzero(live)
-            if len(li) == 0:
+            if len(act) == 0:
                 break
-            self.stats["newton_iters"] += len(li)
-            P, Ps, Pt = bz.bezier_eval(ctrl, s[li], t[li], derivatives=1, index=li)
-            f1 = np.einsum("ij,ij->i", n1[li], P) - c1[li]
-            f2 = np.einsum("ij,ij->i", n2[li], P) - c2[li]
+            self.stats["newton_iters"] += len(act)
+            H = bz.tensor_weights(ss, tt, p, q, 1) @ fa         # (k, partial S/Ss/St, A/B/W)
+            w = H[:, 0, 2]
+            f1 = H[:, 0, 0] / w
+            f2 = H[:, 0, 1] / w
             conv = np.hypot(f1, f2) <= tol
-            ok[li[conv]] = True
-            live[li[conv]] = False
-            a = np.einsum("ij,ij->i", n1[li], Ps)
-            b = np.einsum("ij,ij->i", n1[li], Pt)
-            c = np.einsum("ij,ij->i", n2[li], Ps)
-            e = np.einsum("ij,ij->i", n2[li], Pt)
+            a = (H[:, 1, 0] - H[:, 1, 2] * f1) / w
+            b = (H[:, 2, 0] - H[:, 2, 2] * f1) / w
+            c = (H[:, 1, 1] - H[:, 1, 2] * f2) / w
+            e = (H[:, 2, 1] - H[:, 2, 2] * f2) / w
             det = a * e - b * c
             sing = ~(np.abs(det) > 1e-300 + 1e-14 * (np.abs(a * e) + np.abs(b * c)))
             safe = np.where(sing, 1.0, det)
@@ -315,10 +326,17 @@ class PatchTracer:
             dt = (a * f2 - c * f1) / safe
             step = np.maximum(np.abs(ds), np.abs(dt))
             damp = np.where(step > MAX_STEP, MAX_STEP / np.maximum(step, 1e-300), 1.0)
-            s[li] -= np.where(conv, 0.0, ds * damp)
-            t[li] -= np.where(conv, 0.0, dt * damp)
-            lost = (sing | (s[li] < -1.0) | (s[li] > 2.0) | (t[li] < -1.0) | (t[li] > 2.0)) & ~conv
-            live[li[lost]] = False
+            ss -= np.where(conv, 0.0, ds * damp)
+            tt -= np.where(conv, 0.0, dt * damp)
+            done = conv | sing | (ss < -1.0) | (ss > 2.0) | (tt < -1.0) | (tt > 2.0)
+            if done.any():
+                ok[act[conv]] = True
+                s[act[done]] = ss[done]
+                t[act[done]] = tt[done]
+                keep = ~done
+                act, fa, ss, tt = act[keep], fa[keep], ss[keep], tt[keep]
+        s[act] = ss
+        t[act] = tt
         return ok
 
     def _accept(self, o, d, tmin, best_t, res, r, ctrl, grp, sp, box, ok, s, t, twin):
@@ -383,11 +401,8 @@ class PatchTracer:
         gi, s2, t2 = good[g][near], s2[near], t2[near]
         if len(gi) == 0:
             return grazing
-        ro, rd = o[r[gi]], d[r[gi]]
-        n1, n2 = _ray_planes(rd)
-        c1 = np.einsum("ij,ij->i", n1, ro)
-        c2 = np.einsum("ij,ij->i", n2, ro)
-        ok2 = self._newton(ctrl[gi], s2, t2, n1, c1, n2, c2)
+        ok2 = self._newton(_project(ctrl[gi], o[r[gi]], d[r[gi]]), ctrl.shape[1] - 1,
+                           ctrl.shape[2] - 1, s2, t2)
         self._accept(o, d, tmin, best_t, res, r[gi], ctrl[gi], grp, sp[gi], box[gi], ok2,
                      s2, t2, twin=False)
         return grazing
@@ -542,15 +557,30 @@ def _tangent_coords(Ps, Pt, w):
     return np.where(ok, (g22 * r1 - g12 * r2) / safe, 0.0), np.where(ok, (g11 * r2 - g12 * r1) / safe, 0.0)
 
 
-def _hull_meets(ctrl, n1, c1, n2, c2):
+def _project(ctrl, ro, rd):
+    """Homogeneous nets ``ctrl`` (n, p+1, q+1, 4) projected onto their rays' two planes
+    (``_ray_planes``: n_i . x = c_i through the origin ``ro``): (n, (p+1)(q+1), 3) holding per
+    control point A = n1 . X - c1 w, B = n2 . X - c2 w and w. A / w and B / w are the point's
+    coordinates in the plane seen end-on along the ray, which passes through (0, 0)."""
+    n1, n2 = _ray_planes(rd)
+    h = ctrl.reshape(len(ctrl), -1, 4)
+    nrm = np.stack([n1, n2], axis=2)                                    # (n, 3, 2)
+    f = np.empty(h.shape[:2] + (3,))
+    np.matmul(h[..., :3], nrm, out=f[..., :2])
+    f[..., 0] -= np.einsum("ij,ij->i", n1, ro)[:, None] * h[..., 3]
+    f[..., 1] -= np.einsum("ij,ij->i", n2, ro)[:, None] * h[..., 3]
+    f[..., 2] = h[..., 3]
+    return f
+
+
+def _hull_meets(f):
     """False where the ray certainly misses the net's surface: the ray's line, seen end-on in
     the plane of (n1, n2), lies outside the 2D convex hull of the control points (convex hull
-    property; w > 0 keeps the homogeneous points' angles). First the hull's bounding box (all
-    points on one side of one ray plane), then the hull itself: the line is outside it when
-    the points' angles around it leave a gap wider than pi."""
-    h = ctrl.reshape(len(ctrl), -1, 4)
-    f1 = np.einsum("nkj,nj->nk", h[..., :3], n1) - c1[:, None] * h[..., 3]
-    f2 = np.einsum("nkj,nj->nk", h[..., :3], n2) - c2[:, None] * h[..., 3]
+    property; w > 0 keeps the homogeneous points' angles). ``f``: the projected nets
+    (``_project``). First the hull's bounding box (all points on one side of one ray plane),
+    then the hull itself: the line is outside it when the points' angles around it leave a
+    gap wider than pi."""
+    f1, f2 = f[..., 0], f[..., 1]
     meets = ~((f1.min(1) > 0) | (f1.max(1) < 0) | (f2.min(1) > 0) | (f2.max(1) < 0))
     idx = np.flatnonzero(meets)
     if len(idx):

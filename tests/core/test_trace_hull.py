@@ -10,7 +10,7 @@ from riray.render.camera import camera_rays
 from riray.scene.model import Mesh
 from riray.scene.samples import build
 from riray.trace.meshes import MeshSet
-from riray.trace.patches import PatchTracer, _hull_meets, _ray_planes
+from riray.trace.patches import PatchTracer, _hull_meets, _project, _ray_planes
 
 
 def in_some_triangle(p, eps):
@@ -44,8 +44,8 @@ def test_end_on_hull_test_matches_triangle_cover():
     d /= np.linalg.norm(d, axis=1)[:, None]
     aim = pts.reshape(n, 16, 3).mean(axis=1) + rng.normal(size=(n, 3)) * 0.15
     o = aim - 3.0 * d
+    got = _hull_meets(_project(ctrl, o, d))
     n1, n2 = _ray_planes(d)
-    got = _hull_meets(ctrl, n1, np.einsum("ij,ij->i", n1, o), n2, np.einsum("ij,ij->i", n2, o))
     flat = pts.reshape(n, 16, 3) - o[:, None, :]
     p2 = np.stack([flat @ n1.T, flat @ n2.T], -1)[np.arange(n), :, np.arange(n)]
     scale = np.abs(p2).max(axis=(1, 2))[:, None]
