@@ -11,7 +11,7 @@ Method (after Martin et al.'s practical NURBS ray tracing, adapted to numpy):
 3. Fallback: a pair whose Newton run did not converge although its seed says the ray crosses
    the sub-patch is split into four children, which are retried (a few levels deep).
 4. Pairs are processed nearest box first; once a ray has a hit, candidates whose boxes start
-   beyond it are dropped.
+   beyond it are dropped (in small batches, where few far pairs exist, all pairs go at once).
 Mesh patches (triangles) go through the triangle tracer and compete on t.
 
 Units: t is the distance along unit directions, in scene units (metres).
@@ -63,6 +63,9 @@ T_MIN_REL = 1e-9
 # |Ss x St| below this (relative to (|Ss| + |St|)^2) marks a degenerate point (pole, collapsed edge):
 # the normal comes from the geometry's limit-normal evaluation instead.
 DEGENERATE_REL = 1e-9
+# Far candidates (third box of a ray or later) below this count are solved with the near ones
+# in one stage: a stage's fixed cost (~5 ms) outweighs the Newton work the near hits would save.
+STAGE_MIN_PAIRS = 4096
 # Newton runs iterated together: their working arrays (~1 kB a run) stay in a core's cache.
 NEWTON_BLOCK = 4096
 # Pairs solved per batch (bounds memory: a degree-5 pair gathers 36 x 4 float64 control values).
@@ -233,7 +236,9 @@ class PatchTracer:
         # nearest boxes first: rank of each candidate within its ray (pairs come sorted by ray, t)
         rank = _rank_within(ray)
         todo = np.ones(len(ray), bool)
-        for stage_max_rank in (2, None):
+        # a second stage pays for its fixed cost only where it can drop many far pairs
+        stages = (2, None) if np.count_nonzero(rank >= 2) > STAGE_MIN_PAIRS else (None,)
+        for stage_max_rank in stages:
             sel = todo & (rank < stage_max_rank) if stage_max_rank is not None else todo.copy()
             sel &= tent <= best_t[ray]
             idx = np.flatnonzero(sel)
