@@ -19,6 +19,8 @@ import numpy as np
 from ..rowops import argmax3
 
 UV_AXES = ((1, 2), (0, 2), (0, 1))   # world axes carrying (u, v) on the faces of each axis
+U_AXIS = np.array([p[0] for p in UV_AXES])   # (u, v) axes of each dominant axis, as arrays
+V_AXIS = np.array([p[1] for p in UV_AXES])
 N_SLOTS = 5
 
 
@@ -29,10 +31,7 @@ def dir_to_cube(d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rows = np.arange(len(d))
     m = a[rows, axis]
     face = 2 * axis + (d[rows, axis] > 0)
-    w = d / m[:, None]
-    ua = np.array([p[0] for p in UV_AXES])[axis]
-    va = np.array([p[1] for p in UV_AXES])[axis]
-    return face, w[rows, ua], w[rows, va]
+    return face, d[rows, U_AXIS[axis]] / m, d[rows, V_AXIS[axis]] / m
 
 
 def cube_to_dir(face: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:

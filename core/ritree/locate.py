@@ -13,10 +13,7 @@ import numpy as np
 
 from ..rowops import all_last, argmax3, min3
 from ..trace.boxes import slab_intervals
-from .dircube import DOMAIN, SLOT, UV_AXES, dir_to_cube
-
-_U_AXIS = np.array([p[0] for p in UV_AXES])
-_V_AXIS = np.array([p[1] for p in UV_AXES])
+from .dircube import DOMAIN, SLOT, U_AXIS, V_AXIS, dir_to_cube
 
 
 def entry_points(tree, o, d):
@@ -24,16 +21,16 @@ def entry_points(tree, o, d):
     Returns (t_in, face, x, y, inside): inside marks rays starting inside the box."""
     lo, hi = tree.box_lo, tree.box_hi
     tnear, tfar = slab_intervals(o, d, lo, hi)
-    ins = (o >= lo) & (o <= hi)
     axis = argmax3(tnear)
     rows = np.arange(len(o))
     tn = tnear[rows, axis]
     tf = min3(tfar)
-    inside = all_last(ins)
+    # inside every slab (closed): t = 0 lies in every axis' interval
+    inside = (tn <= 0) & (tf >= 0)
     t_in = np.where((tn <= tf) & (tf >= 0), np.maximum(tn, 0.0), np.inf)
     face = 2 * axis + (d[rows, axis] < 0)
     q = o + np.where(np.isfinite(t_in), t_in, 0.0)[:, None] * d
-    return t_in, face, q[rows, _U_AXIS[axis]], q[rows, _V_AXIS[axis]], inside
+    return t_in, face, q[rows, U_AXIS[axis]], q[rows, V_AXIS[axis]], inside
 
 
 @dataclass
@@ -81,9 +78,7 @@ def locate(tree, o, d, tmax):
     dom = DOMAIN[face[q], np.maximum(slot, 0)]
     fx = np.clip((u - dom[:, 0]) / (dom[:, 1] - dom[:, 0]), 0.0, 1.0)
     fy = np.clip((v - dom[:, 2]) / (dom[:, 3] - dom[:, 2]), 0.0, 1.0)
-    leaf, lx, ly = tree.dir_locator.locate_normalized(trees.ravel(), np.repeat(fx, 4),
-                                                      np.repeat(fy, 4))
-    leaf, lx, ly = leaf.reshape(-1, 4), lx.reshape(-1, 4), ly.reshape(-1, 4)
+    leaf, lx, ly = tree.dir_locator.locate_normalized(trees, fx[:, None], fy[:, None])
     ok &= all_last(leaf >= 0)
     # leaves inside the baked rectangle with every corner sampled answer all their rays;
     # elsewhere each ray is checked (against its cell's four baked rectangles at once)

@@ -186,14 +186,19 @@ class DenseLocator:
         return self.locate_normalized(trees, *self.forest.normalized(trees, x, y))
 
     def locate_normalized(self, trees, fx, fy):
-        """Forest.locate for points given in normalized domain coordinates (Forest.normalized)."""
+        """Forest.locate for points given in normalized domain coordinates (Forest.normalized).
+        ``fx``, ``fy`` broadcast against ``trees`` (e.g. (n, 1) against (n, 4): one point in
+        four trees, its cell computed once); results have the broadcast shape."""
         side = 1 << self.level
         off = self.offset[trees]
-        cx = np.minimum((fx * side).astype(np.int64), side - 1)
-        cy = np.minimum((fy * side).astype(np.int64), side - 1)
-        start = np.where(off >= 0, self.table[np.maximum(off, 0) + cy * side + cx], -1)
+        cell = np.minimum((fy * side).astype(np.int64), side - 1) * side \
+            + np.minimum((fx * side).astype(np.int64), side - 1)
+        start = np.where(off >= 0, self.table[np.maximum(off, 0) + cell], -1)
         if self.level < self.forest.max_level:
-            return self.forest.descend(start, fx, fy)
+            shape = start.shape
+            nd, lx, ly = self.forest.descend(start.ravel(), np.broadcast_to(fx, shape).ravel(),
+                                             np.broadcast_to(fy, shape).ravel())
+            return nd.reshape(shape), lx.reshape(shape), ly.reshape(shape)
         # the table's nodes are leaves: Forest.descend's cell-local coordinates, no descent
         nd = np.maximum(start, 0)
         lx = np.clip(fx * self.scale[nd] - self.ix[nd], 0.0, 1.0)

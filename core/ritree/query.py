@@ -339,8 +339,8 @@ class TreeQuery:
         dist = None if opt.distance is None else opt.distance * tree.diag
         per_sample = thresholds and opt.threshold_on == "samples"
         with clock("decide"):
-            loc, set_of, pc = loc.take(go), set_of[go], pc[go]
-            m = len(loc)
+            set_of, pc = set_of[go], pc[go]
+            m = len(go)                 # the rays left: loc's rows ``go`` (taken once, below)
             # only the sets these rays use (all-miss sets hold many rays, answered already)
             keep = np.zeros(len(s_leaf), bool)
             keep[set_of] = True
@@ -373,11 +373,12 @@ class TreeQuery:
             if easy.any():
                 e, h = np.flatnonzero(easy), np.flatnonzero(~easy)
                 with clock("blend"):
-                    self._blend_bilinear(loc.take(e), items, set_of[e], pc[e], o, d, tmax,
+                    self._blend_bilinear(loc.take(go[e]), items, set_of[e], pc[e], o, d, tmax,
                                          res, ans, why)
-                loc, set_of, pc, unit_of = loc.take(h), set_of[h], pc[h], unit_of[h]
-                m = len(loc)
+                go, set_of, pc, unit_of = go[h], set_of[h], pc[h], unit_of[h]
+                m = len(go)
         with clock("weights"):
+            loc = loc.take(go)
             usable = u_ok[unit_of, :16].reshape(m, 4, 4)
             checked = u_checked[unit_of]
             thr_hit = np.zeros((m, 4), bool)            # DQs whose corners the thresholds cut

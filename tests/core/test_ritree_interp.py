@@ -13,7 +13,7 @@ from riray.ritree.interp import (BILINEAR, EXTRAPOLATED, FAIL, TRIANGLE, UNIT_CO
                                  barycentric, cell_weights, drop_outlier, drop_outlier_units,
                                  far_pairs, pick_triangle,
                                  triangle_status)
-from riray.ritree.quadtree import Forest
+from riray.ritree.quadtree import DenseLocator, Forest
 
 RNG = np.random.default_rng(20240611)
 
@@ -244,6 +244,33 @@ def test_locate_matches_brute_force(seed):
     node, lx, ly = check_locate(f, tree_of, trees, x, y)
     assert np.all(node[f.root[trees] >= 0] >= 0)
     assert np.all(node[f.root[trees] < 0] == -1)
+
+
+@pytest.mark.parametrize("budget", [64 << 20, 4 * 7 * 4 ** 3])
+def test_dense_locator_one_point_in_four_trees_matches_brute_force(budget):
+    """DenseLocator with one point per row looked up in four trees at once ((n, 1) points
+    against (n, 4) trees, as the query locates a ray's four direction leaves): each column is
+    the brute-force leaf of that tree. A small budget makes the table shallower than the
+    forest, so the table's nodes are descended further."""
+    rng = np.random.default_rng(3)
+    T = 7
+    doms = np.tile([0.0, 1.0, 0.0, 1.0], (T, 1))
+    f, tree_of = random_forest(doms, 6, 0.5, rng)
+    loc = DenseLocator(f, budget_bytes=budget)
+    assert (loc.level < f.max_level) == (budget < 64 << 20)
+    n = 400
+    trees = rng.integers(0, T, (n, 4))
+    L = f.max_level
+    fx = np.where(rng.random(n) < 0.3, rng.integers(0, (1 << L) + 1, n) / (1 << L), rng.random(n))
+    fy = rng.random(n)
+    node, lx, ly = loc.locate_normalized(trees, fx[:, None], fy[:, None])
+    assert node.shape == lx.shape == ly.shape == (n, 4)
+    for k in range(4):
+        want, wlx, wly = brute_locate(f, tree_of, trees[:, k], fx, fy)
+        assert np.array_equal(node[:, k], want)
+        ok = want >= 0
+        assert np.allclose(lx[ok, k], wlx[ok], atol=1e-12)
+        assert np.allclose(ly[ok, k], wly[ok], atol=1e-12)
 
 
 def test_locate_outside_domain_is_clamped():
