@@ -268,6 +268,7 @@ def _basis_plan(p: int, d: int):
     return (np.array(xi), np.array(yi), np.array(cc, np.float64)[:, None],
             np.ascontiguousarray(mat.reshape(len(xi), (d + 1) * (p + 1)).T))
 
+
 def _bernstein(x: np.ndarray, p: int, d: int) -> np.ndarray:
     """Bernstein polynomials B_i^p(x) and their derivatives up to order d: (n, d+1, p+1) view.
     Each B_i^m is a product of powers (no cancellation), the derivatives one matrix product

@@ -7,7 +7,10 @@ Method (after Martin et al.'s practical NURBS ray tracing, adapted to numpy):
    hit on the two triangles of the sub-patch's corners (sub-patch midpoint if the plane hit is
    far outside), then Newton iterates on (s, t) in the sub-patch's local coordinates with the
    ray written as the intersection of two planes (a 2x2 system, well conditioned away from
-   exact tangency). Converged roots inside the sub-patch are hits; the nearest wins.
+   exact tangency). The net is projected onto the planes once per pair (``_project``: two
+   scalar nets and the weights), which also serves the end-on hull test; each iteration then
+   evaluates three scalar polynomials. Converged roots inside the sub-patch are hits; the
+   nearest wins.
 3. Fallback: a pair whose Newton run did not converge although its seed says the ray crosses
    the sub-patch is split into four children, which are retried (a few levels deep).
 4. Pairs are processed nearest box first; once a ray has a hit, candidates whose boxes start
@@ -68,7 +71,8 @@ DEGENERATE_REL = 1e-9
 STAGE_MIN_PAIRS = 4096
 # Newton runs iterated together: their working arrays (~1 kB a run) stay in a core's cache.
 NEWTON_BLOCK = 4096
-# Pairs solved per batch (bounds memory: a degree-5 pair gathers 36 x 4 float64 control values).
+# Pairs solved per batch: bounds memory (a degree-5 pair gathers 36 x 4 float64 control values)
+# and keeps a batch's arrays small (exact renders ran ~5 % faster than with 1 << 16).
 PAIR_CHUNK = 1 << 14
 # Angular slack (rad) of the end-on hull test: a line within rounding of the hull's boundary
 # (or through a control point, angle of a zero vector) counts as meeting it.
