@@ -265,14 +265,18 @@ def _basis_plan(p: int, d: int):
                 if 0 <= i - j <= m:
                     mat[row + i - j, k, i] += scale * (-1) ** (k - j) * comb(k, j)
         row += m + 1
-    return (np.array(xi), np.array(yi), np.array(cc, np.float64)[:, None],
+    plan = (np.array(xi), np.array(yi), np.array(cc, np.float64)[:, None],
             np.ascontiguousarray(mat.reshape(len(xi), (d + 1) * (p + 1)).T))
+    for a in plan:
+        a.flags.writeable = False                   # shared by every call (cached)
+    return plan
 
 
 def _bernstein(x: np.ndarray, p: int, d: int) -> np.ndarray:
     """Bernstein polynomials B_i^p(x) and their derivatives up to order d: (n, d+1, p+1) view.
-    Each B_i^m is a product of powers (no cancellation), the derivatives one matrix product
-    of them: a fixed handful of array operations, whatever p (small batches pay little)."""
+    Each B_i^m is a product of powers (no cancellation in the values; the derivatives'
+    alternating sums cancel as in any Bernstein form), the derivatives one matrix product of
+    them: a fixed handful of array operations, whatever p (small batches pay little)."""
     xi, yi, cc, matT = _basis_plan(p, d)
     pw = np.empty((2, p + 1, len(x)))               # x^j and (1-x)^j, j = 0..p (row-wise)
     pw[:, 0] = 1.0

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..parallel import map_chunks
 from .cache import fingerprint
-from .dircube import CUBE, DOMAIN, N_SLOTS, UV_AXES, cube_to_dir
+from .dircube import CUBE, DOMAIN, N_SLOTS, U_AXIS, UV_AXES, V_AXIS, cube_to_dir
 from .interp import FAIL, UNIT_CORNERS, angle_between, cell_weights
 from .quadtree import CORNERS, Forest
 from .region import Region
@@ -827,15 +827,13 @@ def rect_sees_boxes(p, cube, rect, lo, hi, ext):
     rel = pts - p[:, None, :]
     col = np.arange(8)[None]
     depth = np.where(ok[:, None], sign[:, None] * rel[rows[:, None], col, b[:, None]], 1.0)
-    u = rel[rows[:, None], col, _UA[b][:, None]] / depth
-    v = rel[rows[:, None], col, _VA[b][:, None]] / depth
+    u = rel[rows[:, None], col, U_AXIS[b][:, None]] / depth
+    v = rel[rows[:, None], col, V_AXIS[b][:, None]] / depth
     return ok & (u.max(1) >= rect[:, 0]) & (u.min(1) <= rect[:, 1]) \
         & (v.max(1) >= rect[:, 2]) & (v.min(1) <= rect[:, 3])
 
 
 _BOX_CORNERS = np.array([[(i >> k) & 1 for k in range(3)] for i in range(8)], bool)   # (8, 3)
-_UA = np.array([a for a, _ in UV_AXES])
-_VA = np.array([b for _, b in UV_AXES])
 
 
 def _extras(dirf, leaves, samples, class_of, trace, uv_of, tree_of, M, steps, add, stage):

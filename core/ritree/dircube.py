@@ -41,8 +41,8 @@ def cube_to_dir(face: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     d = np.zeros((len(face), 3))
     rows = np.arange(len(face))
     d[rows, axis] = np.where(face % 2 == 1, 1.0, -1.0)
-    d[rows, np.array([p[0] for p in UV_AXES])[axis]] = u
-    d[rows, np.array([p[1] for p in UV_AXES])[axis]] = v
+    d[rows, U_AXIS[axis]] = u
+    d[rows, V_AXIS[axis]] = v
     return d / np.linalg.norm(d, axis=1)[:, None]
 
 

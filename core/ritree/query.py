@@ -340,7 +340,7 @@ class TreeQuery:
         per_sample = thresholds and opt.threshold_on == "samples"
         with clock("decide"):
             set_of, pc = set_of[go], pc[go]
-            m = len(go)                 # the rays left: loc's rows ``go`` (taken once, below)
+            m = len(go)            # the rays left: loc's rows ``go`` (taken in "weights")
             # only the sets these rays use (all-miss sets hold many rays, answered already)
             keep = np.zeros(len(s_leaf), bool)
             keep[set_of] = True

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..render.camera import camera_rays
-from .dircube import N_SLOTS, SLOT, UV_AXES, dir_to_cube
+from .dircube import N_SLOTS, SLOT, U_AXIS, V_AXIS, dir_to_cube
 from .locate import entry_points
 
 
@@ -84,8 +84,7 @@ def region_for_cameras(st, params, cameras, width, height, margin: int = 1) -> R
         rays.append((o[ok], d[ok], env_t[ok]))
         face, x, y, u, v, sl = face[ok], x[ok], y[ok], u[ok], v[ok], sl[ok]
         axis = face // 2
-        ua = np.array([p[0] for p in UV_AXES])[axis]
-        va = np.array([p[1] for p in UV_AXES])[axis]
+        ua, va = U_AXIS[axis], V_AXIS[axis]
         fx = np.clip((x - box.box_lo[ua]) / (box.box_hi[ua] - box.box_lo[ua]), 0.0, 1.0)
         fy = np.clip((y - box.box_lo[va]) / (box.box_hi[va] - box.box_lo[va]), 0.0, 1.0)
         rec.append((face, fx, fy, sl, u, v))

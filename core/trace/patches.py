@@ -66,8 +66,8 @@ T_MIN_REL = 1e-9
 # |Ss x St| below this (relative to (|Ss| + |St|)^2) marks a degenerate point (pole, collapsed edge):
 # the normal comes from the geometry's limit-normal evaluation instead.
 DEGENERATE_REL = 1e-9
-# Far candidates (third box of a ray or later) below this count are solved with the near ones
-# in one stage: a stage's fixed cost (~5 ms) outweighs the Newton work the near hits would save.
+# A batch with at most this many far candidates (a ray's third box or later) solves them with
+# the near ones in one stage: a stage's fixed cost (~5 ms) outweighs the Newton work saved.
 STAGE_MIN_PAIRS = 4096
 # Newton runs iterated together: their working arrays (~1 kB a run) stay in a core's cache.
 NEWTON_BLOCK = 4096
@@ -272,21 +272,21 @@ class PatchTracer:
         if len(r) == 0:
             return
         ro, rd = o[r], d[r]
-        f = _project(ctrl, ro, rd)
-        meet = _hull_meets(f)
+        proj = _project(ctrl, ro, rd)
+        meet = _hull_meets(proj)
         if not meet.all():
-            r, ctrl, sp, box, ro, rd, f = (x[meet] for x in (r, ctrl, sp, box, ro, rd, f))
+            r, ctrl, sp, box, ro, rd, proj = (x[meet] for x in (r, ctrl, sp, box, ro, rd, proj))
             if len(r) == 0:
                 return
         self.stats["pairs"] += len(r)
         s, t = _seed(ctrl, ro, rd)
-        ok = self._newton(f, ctrl.shape[1] - 1, ctrl.shape[2] - 1, s, t)
+        ok = self._newton(proj, ctrl.shape[1] - 1, ctrl.shape[2] - 1, s, t)
         in_net = (s >= -PARAM_MARGIN) & (s <= 1 + PARAM_MARGIN) & (t >= -PARAM_MARGIN) \
             & (t <= 1 + PARAM_MARGIN)
         # no root at all, or a root outside the net (another root may hide in it: a grazing
         # ray, or a seed from outside the corner triangles)
         retry = ~ok | ~in_net
-        grazing = self._accept(o, d, tmin, best_t, res, r, ctrl, grp, sp, box, ok, s, t,
+        grazing = self._accept(o, d, tmin, best_t, res, r, ctrl, proj, grp, sp, box, ok, s, t,
                                twin=True)
         # a grazing root may have a twin in the net that the twin search missed
         retry |= grazing
@@ -294,9 +294,9 @@ class PatchTracer:
             self._subdivide(o, d, tmin, best_t, res, r, ctrl, grp, sp, box, levels,
                             np.flatnonzero(retry))
 
-    def _newton(self, f, p, q, s, t):
+    def _newton(self, proj, p, q, s, t):
         """Newton iterations in place on (s, t) for nets of degree (p, q) projected onto their
-        rays' planes (``_project``: f (n, (p+1)(q+1), 3)); returns the converged mask. Steps
+        rays' planes (``_project``: proj (n, (p+1)(q+1), 3)); returns the converged mask. Steps
         are damped to MAX_STEP; runs that leave [-1, 2]^2 or meet a singular Jacobian stop
         unconverged. The live runs are kept packed (no per-iteration gathers).
 
@@ -304,17 +304,17 @@ class PatchTracer:
         f2 = B / W (distances of the surface point from the planes) and their partials
         (A_s - W_s f1) / W etc.: the rational surface's, without forming its points."""
         ok = np.zeros(len(s), bool)
-        for b in range(0, len(s), NEWTON_BLOCK):          # blocks stay in cache
-            e = min(b + NEWTON_BLOCK, len(s))
-            ok[b:e] = self._newton_block(f[b:e], p, q, s[b:e], t[b:e])
+        for lo in range(0, len(s), NEWTON_BLOCK):         # blocks stay in cache
+            hi = min(lo + NEWTON_BLOCK, len(s))
+            ok[lo:hi] = self._newton_block(proj[lo:hi], p, q, s[lo:hi], t[lo:hi])
         return ok
 
-    def _newton_block(self, f, p, q, s, t):
+    def _newton_block(self, proj, p, q, s, t):
         """_newton on one block (s, t: views, updated in place)."""
         tol = NEWTON_TOL_REL * self.diag
         ok = np.zeros(len(s), bool)
         act = np.arange(len(s))
-        fa, ss, tt = f, s.copy(), t.copy()
+        fa, ss, tt = proj, s.copy(), t.copy()
         for _ in range(NEWTON_ITERS):
             if len(act) == 0:
                 break
@@ -348,7 +348,7 @@ class PatchTracer:
         t[act] = tt
         return ok
 
-    def _accept(self, o, d, tmin, best_t, res, r, ctrl, grp, sp, box, ok, s, t, twin):
+    def _accept(self, o, d, tmin, best_t, res, r, ctrl, proj, grp, sp, box, ok, s, t, twin):
         """Record converged roots that lie inside their Bezier piece and beat best_t.
 
         With ``twin``, grazing roots get a second Newton run for their twin: two roots of one
@@ -357,6 +357,7 @@ class PatchTracer:
         behind a found root (a nearer hit), ahead of a root at the ray's own start (t <= tmin:
         the next hit of a ray leaving the surface). A root counts as the ray's start, not a hit,
         when the surface crossing it stands for lies at or before tmin (``_crossing_behind``).
+        ``proj``: the nets projected onto their rays' planes (``_project``), for the twin runs.
         Returns the mask of pairs whose root is grazing (their net may hold a second root)."""
         s_sub = box[:, 0] + (box[:, 1] - box[:, 0]) * s
         t_sub = box[:, 2] + (box[:, 3] - box[:, 2]) * t
@@ -410,10 +411,9 @@ class PatchTracer:
         gi, s2, t2 = good[g][near], s2[near], t2[near]
         if len(gi) == 0:
             return grazing
-        ok2 = self._newton(_project(ctrl[gi], o[r[gi]], d[r[gi]]), ctrl.shape[1] - 1,
-                           ctrl.shape[2] - 1, s2, t2)
-        self._accept(o, d, tmin, best_t, res, r[gi], ctrl[gi], grp, sp[gi], box[gi], ok2,
-                     s2, t2, twin=False)
+        ok2 = self._newton(proj[gi], ctrl.shape[1] - 1, ctrl.shape[2] - 1, s2, t2)
+        self._accept(o, d, tmin, best_t, res, r[gi], ctrl[gi], proj[gi], grp, sp[gi], box[gi],
+                     ok2, s2, t2, twin=False)
         return grazing
 
     def _record(self, res, best_t, grp, spf, rr, tt, P, Ps, Pt, nrm, ln, s_sub, t_sub):
