@@ -67,7 +67,8 @@ T_MIN_REL = 1e-9
 # the normal comes from the geometry's limit-normal evaluation instead.
 DEGENERATE_REL = 1e-9
 # A batch with at most this many far candidates (a ray's third box or later) solves them with
-# the near ones in one stage: a stage's fixed cost (~5 ms) outweighs the Newton work saved.
+# the near ones in one stage: a stage's fixed cost (a whole Newton-and-fallback pipeline; an
+# intersect call costs ~7 ms beyond its pairs' work) outweighs the Newton work saved.
 STAGE_MIN_PAIRS = 4096
 # Newton runs iterated together: their working arrays (~1 kB a run) stay in a core's cache.
 NEWTON_BLOCK = 4096
