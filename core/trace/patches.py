@@ -68,7 +68,8 @@ T_MIN_REL = 1e-9
 DEGENERATE_REL = 1e-9
 # A batch with at most this many far candidates (a ray's third box or later) solves them with
 # the near ones in one stage: a stage's fixed cost (a whole Newton-and-fallback pipeline; an
-# intersect call costs ~7 ms beyond its pairs' work) outweighs the Newton work saved.
+# intersect call cost ~7 ms beyond its pairs' work before the projected-net Newton) outweighs
+# the Newton work saved.
 STAGE_MIN_PAIRS = 4096
 # Newton runs iterated together: their working arrays (~1 kB a run) stay in a core's cache.
 NEWTON_BLOCK = 4096
@@ -575,22 +576,22 @@ def _project(ctrl, ro, rd):
     n1, n2 = _ray_planes(rd)
     h = ctrl.reshape(len(ctrl), -1, 4)
     nrm = np.stack([n1, n2], axis=2)                                    # (n, 3, 2)
-    f = np.empty(h.shape[:2] + (3,))
-    np.matmul(h[..., :3], nrm, out=f[..., :2])
-    f[..., 0] -= np.einsum("ij,ij->i", n1, ro)[:, None] * h[..., 3]
-    f[..., 1] -= np.einsum("ij,ij->i", n2, ro)[:, None] * h[..., 3]
-    f[..., 2] = h[..., 3]
-    return f
+    proj = np.empty(h.shape[:2] + (3,))
+    np.matmul(h[..., :3], nrm, out=proj[..., :2])
+    proj[..., 0] -= np.einsum("ij,ij->i", n1, ro)[:, None] * h[..., 3]
+    proj[..., 1] -= np.einsum("ij,ij->i", n2, ro)[:, None] * h[..., 3]
+    proj[..., 2] = h[..., 3]
+    return proj
 
 
-def _hull_meets(f):
+def _hull_meets(proj):
     """False where the ray certainly misses the net's surface: the ray's line, seen end-on in
     the plane of (n1, n2), lies outside the 2D convex hull of the control points (convex hull
-    property; w > 0 keeps the homogeneous points' angles). ``f``: the projected nets
+    property; w > 0 keeps the homogeneous points' angles). ``proj``: the projected nets
     (``_project``). First the hull's bounding box (all points on one side of one ray plane),
     then the hull itself: the line is outside it when the points' angles around it leave a
     gap wider than pi."""
-    f1, f2 = f[..., 0], f[..., 1]
+    f1, f2 = proj[..., 0], proj[..., 1]
     meets = ~((f1.min(1) > 0) | (f1.max(1) < 0) | (f2.min(1) > 0) | (f2.max(1) < 0))
     idx = np.flatnonzero(meets)
     if len(idx):
