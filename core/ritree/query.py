@@ -172,8 +172,13 @@ def group_rows(keys: np.ndarray):
     heads = np.flatnonzero(head)
     run_of = np.cumsum(head) - 1
     hk = keys[heads]
-    order = np.lexsort(hk.T[::-1])
-    sk = hk[order]
+    sk, k = hk, hk.shape[1]
+    if k > 1 and hk.min() >= 0 and hk.max() < 1 << 31:
+        # pairs of columns as one int64 (order-preserving): half the sort keys
+        h = hk.astype(np.int64)
+        sk = np.concatenate([(h[:, 0:k - 1:2] << 32) | h[:, 1:k:2], h[:, k - k % 2:]], axis=1)
+    order = np.argsort(sk[:, 0], kind="stable") if sk.shape[1] == 1 else np.lexsort(sk.T[::-1])
+    sk = sk[order]
     new = np.ones(len(heads), bool)
     new[1:] = any_last(sk[1:] != sk[:-1])
     group = np.empty(len(heads), np.int64)
@@ -188,7 +193,8 @@ def blend(vals, rows, w) -> np.ndarray:
     out = np.empty((n, 12))
     for a in range(0, n, BLEND_BLOCK):
         b = min(a + BLEND_BLOCK, n)
-        out[a:b] = np.matmul(w[a:b, None, :].astype(np.float32), vals[rows[a:b]])[:, 0]
+        out[a:b] = np.matmul(w[a:b, None, :].astype(np.float32, copy=False),
+                             vals.take(rows[a:b], axis=0))[:, 0]
     return out
 
 
@@ -208,35 +214,32 @@ DEFAULT_ITEMS = np.array([[4 * k + j for j in range(4)] + [16 + 4 * k, 16 + 4 * 
 class SetItems:
     """What a sample set can interpolate from: the 16 corners (item 4k + j: DQ k, corner j)
     and each leaf's four extras (item 16 + 4k + e; id 0 and unusable where the leaf has
-    none). ``vals`` holds their values with the output direction multiplied by the
-    perspective weight (Forest.cube_scale), so one weighted sum blends every column."""
+    none). Their values are RITree.blend_vals rows (output directions times the perspective
+    weight), so one weighted sum blends every column."""
 
     ids: np.ndarray          # (S, 32) sample ids
-    vals: np.ndarray         # (S, 32, 12) float32, scaled directions
-    corner_vals: np.ndarray  # (S, 16, 12) float32: vals[:, :16], contiguous
+    corner_vals: np.ndarray  # (S, 16, 12) float32: items 0-15
+    extra_vals: np.ndarray   # (S, 16, 12) float32: items 16-31
     has_extra: np.ndarray    # (S, 4) the leaf stores extras
 
     @classmethod
-    def of(cls, tree, table, s_leaf, s_ids, s_trees) -> "SetItems":
+    def of(cls, tree, s_leaf, s_ids) -> "SetItems":
         s = len(s_leaf)
-        ex_ids = np.zeros((s, 4, 4), np.int64)
-        ex_pos = np.zeros((s, 4, 4, 2))
+        ex_ids = np.zeros((s, 16), np.int64)
         has = np.zeros((s, 4), bool)
         if len(tree.ex_node):
             pos = np.minimum(np.searchsorted(tree.ex_node, s_leaf), len(tree.ex_node) - 1)
             has = tree.ex_node[pos] == s_leaf
-            ex_ids = np.where(has[..., None], tree.ex_ids[pos], 0)
-            ex_pos = tree.ex_pos[pos].astype(np.float64)
-        lx = np.concatenate([np.broadcast_to(UNIT_CORNERS[:, 0], (s, 4, 4)), ex_pos[..., 0]], 2)
-        ly = np.concatenate([np.broadcast_to(UNIT_CORNERS[:, 1], (s, 4, 4)), ex_pos[..., 1]], 2)
-        scale = tree.dir_forest.cube_scale(s_leaf, s_trees, lx, ly)            # (S, 4, 8)
-        scale = np.concatenate([scale[:, :, :4].reshape(s, 16), scale[:, :, 4:].reshape(s, 16)],
-                               axis=1)
-        ids = np.concatenate([s_ids, ex_ids.reshape(s, 16)], axis=1)
-        vals = table.vals[ids]
-        vals[:, :, 3:6] *= scale[:, :, None].astype(np.float32)
-        return cls(ids=ids, vals=vals, corner_vals=np.ascontiguousarray(vals[:, :16]),
-                   has_extra=has)
+            ex_ids = np.where(has[..., None], tree.ex_ids[pos], 0).reshape(s, 16)
+        vals = tree.blend_vals
+        return cls(ids=np.concatenate([s_ids, ex_ids], axis=1), corner_vals=vals[s_ids],
+                   extra_vals=vals[ex_ids], has_extra=has)
+
+    def item_vals(self, sets, item) -> np.ndarray:
+        """Values (..., 12) of items ``item`` (0-31) of sets ``sets`` (broadcast together)."""
+        c = self.corner_vals[sets, np.minimum(item, 15)]
+        e = self.extra_vals[sets, np.maximum(item - 16, 0)]
+        return np.where((item < 16)[..., None], c, e)
 
 
 class TreeQuery:
@@ -255,9 +258,11 @@ class TreeQuery:
         self.opt = (options or QueryOptions()).validate()
         self.material = st.scene.object.material
         # load-time work, done once (and before any fork, so worker processes share it):
-        # decoded samples, dense leaf tables, answerable-leaf flags
+        # decoded samples and their perspective-weighted copy, dense leaf tables,
+        # answerable-leaf flags
         self.table = tree.table
-        tree.vp_locator, tree.dir_locator, tree.leaf_ok, tree.leaf_sampled, tree.cell_rect
+        tree.blend_vals, tree.vp_locator, tree.dir_locator
+        tree.leaf_ok, tree.leaf_sampled, tree.cell_rect
         # a bake that verified no viewpoint cell left no viewpoint-level errors to bound
         if (self.opt.max_error_deg is not None and self.opt.fallback_angle_deg is not None
                 and np.isnan(tree.vp_err).all()):
@@ -299,17 +304,17 @@ class TreeQuery:
     # ------------------------------------------------------------------ sample sets
     def _sets(self, loc: Located):
         """Group located rays by their four leaves (= their 16 samples): (set of each ray,
-        leaves (S, 4), sample ids (S, 16), sample classes (S, 16), trees (S, 4))."""
+        leaves (S, 4), sample ids (S, 16), sample classes (S, 16))."""
         set_of, first = group_rows(loc.leaf)
         s_leaf = loc.leaf[first]
         s_ids = self.tree.dir_forest.corner[s_leaf].reshape(-1, 16)
-        return set_of, s_leaf, s_ids, self.table.cls[s_ids], loc.trees[first]
+        return set_of, s_leaf, s_ids, self.table.cls[s_ids]
 
     # ------------------------------------------------------------------ the paper's policy
     def _ri(self, o, d, tmax, loc, res, ans, why, clock, known) -> int:
         tree, tab, opt = self.tree, self.table, self.opt
         with clock("group"):
-            set_of, s_leaf, s_ids, s_cls, s_trees = self._sets(loc)
+            set_of, s_leaf, s_ids, s_cls = self._sets(loc)
             srt = np.sort(s_cls, axis=1)
             n_cls = 1 + np.sum(srt[:, 1:] != srt[:, :-1], axis=1)
             r_n = n_cls[set_of]
@@ -345,8 +350,8 @@ class TreeQuery:
             keep = np.zeros(len(s_leaf), bool)
             keep[set_of] = True
             set_of = (np.cumsum(keep) - 1)[set_of]
-            s_leaf, s_ids, s_cls, s_trees = (a[keep] for a in (s_leaf, s_ids, s_cls, s_trees))
-            items = SetItems.of(tree, tab, s_leaf, s_ids, s_trees)
+            s_leaf, s_ids, s_cls = (a[keep] for a in (s_leaf, s_ids, s_cls))
+            items = SetItems.of(tree, s_leaf, s_ids)
             unit_of, ufirst = group_rows(np.stack([set_of, pc], axis=1))
             u_set, u_pc = set_of[ufirst], pc[ufirst]
             u_ok = (tab.cls[items.ids[u_set]] == u_pc[:, None]) & ~tab.null[items.ids[u_set]]
@@ -387,26 +392,25 @@ class TreeQuery:
                 fr_row = far_of[unit_of[fr]]             # their units' rows of ``far``
                 self._direction_thresholds(fr, far, fr_row, u_ok[:, :16], unit_of, loc,
                                            usable, thr_hit)
-            w = np.zeros((m, 4, 6))                     # per DQ: 4 corners + up to 2 extras
+            # per DQ: 4 corners + up to 2 extras; every DQ of every ray in one call, rows
+            # 4 * ray + DQ
+            w = np.zeros((m, 4, 6))
+            wk, dq_st = cell_weights(usable.reshape(-1, 4), loc.lx.ravel(), loc.ly.ravel(),
+                                     opt.extrapolation)
+            w[:, :, :4] = wk.reshape(m, 4, 4)
+            dq_st = dq_st.reshape(m, 4)
             item = np.broadcast_to(DEFAULT_ITEMS, (m, 4, 6))
-            dq_st = np.zeros((m, 4), np.int8)
-            for k in range(4):
-                wk, sk = cell_weights(usable[:, k], loc.lx[:, k], loc.ly[:, k], opt.extrapolation)
-                w[:, k, :4] = wk
-                dq_st[:, k] = sk
-                fail = np.flatnonzero(sk == FAIL)
-                if len(fail):
-                    ea = extra_weights(tree, tab, loc.leaf[fail, k], loc.lx[fail, k],
-                                       loc.ly[fail, k], usable[fail, k], pc[fail],
-                                       opt.extrapolation)
-                    g = fail[ea.rows]
-                    if len(g) == 0:
-                        continue
-                    if not item.flags.writeable:
-                        item = item.copy()
-                    w[g, k] = ea.w
-                    item[g, k, 4:] = 16 + 4 * k + ea.extra
-                    dq_st[g, k] = np.where(ea.extrapolated, EXTRAPOLATED, EXTRA)
+            fail = np.flatnonzero(dq_st.ravel() == FAIL)
+            if len(fail):
+                ea = extra_weights(tree, tab, loc.leaf.ravel()[fail], loc.lx.ravel()[fail],
+                                   loc.ly.ravel()[fail], usable.reshape(-1, 4)[fail],
+                                   pc[fail // 4], opt.extrapolation)
+                r, k = np.divmod(fail[ea.rows], 4)
+                if len(r):
+                    item = item.copy()
+                    w[r, k] = ea.w
+                    item[r, k, 4:] = 16 + 4 * k[:, None] + ea.extra
+                    dq_st[r, k] = np.where(ea.extrapolated, EXTRAPOLATED, EXTRA)
             is_extra = (dq_st == EXTRA) | (dq_st == EXTRAPOLATED)
             # viewpoint level
             dq_ok = dq_st != FAIL
@@ -417,7 +421,7 @@ class TreeQuery:
             elif thresholds and not per_sample:
                 # the intermediate rays f*(R_VP): parallel query rays from the four viewpoints
                 inter = np.einsum("nkj,nkjc->nkc", w.astype(np.float32),
-                                  items.vals[set_of[:, None, None], item]).astype(np.float64)
+                                  items.item_vals(set_of[:, None, None], item)).astype(np.float64)
                 idir = inter[:, :, 3:6] / np.maximum(
                     np.linalg.norm(inter[:, :, 3:6], axis=2), 1e-300)[:, :, None]
                 r2, blocks = far_pairs(idir, inter[:, :, 0:3], dq_ok, ang, dist)
@@ -461,9 +465,14 @@ class TreeQuery:
         bilinear weights at both levels, one blend (the general path's weights and answers,
         without its per-ray rules)."""
         W = bilinear_weights(loc.alpha, loc.beta)                            # (n, 4)
-        wr = (W[:, :, None] * bilinear_weights(loc.lx, loc.ly)).reshape(len(loc), 16)
+        # W_k times DQ k's bilinear weights, float32 (the blend's precision)
+        wr = np.empty((len(loc), 4, 4), np.float32)
+        for j, wy in ((0, W * (1 - loc.ly)), (2, W * loc.ly)):
+            wr[:, :, j] = wy * (1 - loc.lx)
+            wr[:, :, j + 1] = wy * loc.lx
+        wr = wr.reshape(len(loc), 16)
         out = blend(items.corner_vals, set_of, wr)
-        best = np.argmax(np.abs(wr), axis=1)
+        best = np.argmax(wr, axis=1)                     # bilinear weights are >= 0
         od, nm = out[:, 3:6], out[:, 9:12]
         lod, lnm = norm3(od), norm3(nm)
         ok = (lod > MIN_BLEND_NORM) & (lnm > MIN_BLEND_NORM)
@@ -493,7 +502,8 @@ class TreeQuery:
             wr = np.zeros((len(r), 32))
             np.put_along_axis(wr, item[r].reshape(len(r), 24),
                               (W[r, :, None] * w[r]).reshape(len(r), 24), axis=1)
-            out[k] = blend(items.vals, set_of[r], wr)
+            out[k] = blend(items.corner_vals, set_of[r], wr[:, :16]) \
+                + blend(items.extra_vals, set_of[r], wr[:, 16:])
             best[k] = np.argmax(np.abs(wr), axis=1)
         return out, best
 
@@ -668,7 +678,7 @@ class TreeQuery:
         one ray tree and class and none is null; trace otherwise. Decided once per set."""
         tab = self.table
         with clock("group"):
-            set_of, s_leaf, s_ids, s_cls, s_trees = self._sets(loc)
+            set_of, s_leaf, s_ids, s_cls = self._sets(loc)
             th = tab.tree[s_ids]
             same = np.all(th == th[:, :1], axis=1) & np.all(s_cls == s_cls[:, :1], axis=1) \
                 & ~np.any(tab.null[s_ids], axis=1)
@@ -685,7 +695,7 @@ class TreeQuery:
             wdq = bilinear_weights(loc.lx[g], loc.ly[g])                    # (g, 4, 4)
             weights = (wq[:, :, None] * wdq).reshape(len(g), 16)
             sg = set_of[g]
-            items = SetItems.of(self.tree, tab, s_leaf, s_ids, s_trees)
+            items = SetItems.of(self.tree, s_leaf, s_ids)
             out = blend(items.corner_vals, sg, weights)
             od, nm = out[:, 3:6], out[:, 9:12]
             lod, lnm = np.linalg.norm(od, axis=1), np.linalg.norm(nm, axis=1)

@@ -18,7 +18,7 @@ import numpy as np
 
 from .cache import TreeCacheError, fingerprint, load_tree, save_tree
 from .codec import decode_points, decode_unit_vectors, encode_points, encode_unit_vectors
-from .quadtree import DenseLocator, Forest
+from .quadtree import CORNERS, DenseLocator, Forest
 
 SAMPLE_FIELDS = ("out_o", "out_d", "point", "normal", "patch", "null", "tree")
 # Version of the tree's array layout inside a .rit file (the file format has its own version):
@@ -234,6 +234,31 @@ class RITree:
     def table(self) -> SampleTable:
         """The samples decoded once (the first use decodes a packed file's samples)."""
         return SampleTable.of(self.samples, self.class_of)
+
+    @cached_property
+    def blend_vals(self) -> np.ndarray:
+        """(S, 12) float32: ``table.vals`` with each output direction multiplied by its
+        sample's perspective weight |(1, u, v)| (Forest.cube_scale at the sample's point of the
+        direction cube), so that one weighted sum of these rows blends every column and the
+        blended direction is perspective-correct. The weight depends only on the sample's
+        input direction, so it is computed once per sample: from the corners of every
+        direction node and from the extras' cell-local positions."""
+        f, n = self.dir_forest, len(self.samples)
+        scale = np.ones(n)
+        tree = f.tree_of_nodes()
+        nodes = np.flatnonzero(tree >= 0)
+        lx = np.broadcast_to(CORNERS[:, 0].astype(np.float64), (len(nodes), 4))
+        ly = np.broadcast_to(CORNERS[:, 1].astype(np.float64), (len(nodes), 4))
+        sc = f.cube_scale(nodes, tree[nodes], lx, ly)
+        ids = f.corner[nodes]
+        scale[ids[ids >= 0]] = sc[ids >= 0]
+        if len(self.ex_node):
+            pos = self.ex_pos.astype(np.float64)
+            sc = f.cube_scale(self.ex_node, tree[self.ex_node], pos[..., 0], pos[..., 1])
+            scale[self.ex_ids] = sc
+        vals = self.table.vals.copy()
+        vals[:, 3:6] *= scale[:, None].astype(np.float32)
+        return vals
 
     @cached_property
     def vp_locator(self) -> DenseLocator:

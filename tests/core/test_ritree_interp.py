@@ -618,8 +618,11 @@ def test_group_rows_against_a_dictionary():
     smallest row index holding its key; runs of equal neighbours and scattered repeats."""
     from riray.ritree.query import group_rows
     rng = np.random.default_rng(11)
-    for trial in range(30):
-        base = rng.integers(0, 4, (int(rng.integers(1, 30)), 4))
+    for trial in range(60):
+        # small keys; keys beyond 31 bits or negative (sorted as given, not packed in pairs);
+        # 1-4 columns
+        lo, hi = [(0, 4), (-3, 2), (0, 1 << 40)][trial % 3]
+        base = rng.integers(lo, hi, (int(rng.integers(1, 30)), 1 + trial % 4))
         pick = base[rng.integers(0, len(base), 200)]
         keys = np.repeat(pick, rng.integers(1, 5, 200), axis=0)
         group, first = group_rows(keys)

@@ -1135,3 +1135,36 @@ def test_default_tolerance_gives_way_on_trees_without_viewpoint_errors(sphere_st
     assert interpolated(ans).mean() > 0.5
     _, strict, swhy, _ = TreeQuery(tree, sphere_st, QueryOptions(fallback_angle_deg=None))(o, d)
     assert not interpolated(strict).any() and np.any(swhy == WHY_TOLERANCE)
+
+
+def test_blend_values_carry_each_samples_perspective_weight(sphere_trees):
+    """RITree.blend_vals: each sample's output direction times |(1, u, v)| = 1 / max|d_i| of
+    its input direction d (from the slot's DOMAIN and the grid point, or the extra's
+    cell-local position), the other columns unchanged."""
+    tree = sphere_trees[4, 4]
+    vals, bv = tree.table.vals, tree.blend_vals
+    sid, _, d, _, _ = sample_rays(tree)
+    f = tree.dir_forest
+    node_tree = np.full(len(f.child), -1)
+    for t in np.flatnonzero(f.root >= 0):
+        node_tree[f.root[t]] = t
+    for lv in range(int(f.level.max())):                   # children after their parents
+        for k in np.flatnonzero((f.level == lv) & (f.child >= 0)):
+            node_tree[f.child[k] + np.arange(4)] = node_tree[k]
+    assert len(tree.ex_node) > 0
+    e_tree = node_tree[tree.ex_node]
+    vp, slot = e_tree // N_SLOTS, e_tree % N_SLOTS
+    dom = DOMAIN[tree.vp_face[vp], slot][:, None, :]
+    size = np.exp2(-f.level[tree.ex_node].astype(np.float64))[:, None]
+    gx = (f.ix[tree.ex_node][:, None] + tree.ex_pos[..., 0].astype(np.float64)) * size
+    gy = (f.iy[tree.ex_node][:, None] + tree.ex_pos[..., 1].astype(np.float64)) * size
+    u = dom[..., 0] + (dom[..., 1] - dom[..., 0]) * gx
+    v = dom[..., 2] + (dom[..., 3] - dom[..., 2]) * gy
+    face = np.repeat(CUBE[tree.vp_face[vp], slot], 4)
+    d_ex = cube_to_dir(face, u.ravel(), v.ravel())
+    ids = np.concatenate([sid, tree.ex_ids.ravel()])
+    w = 1.0 / np.abs(np.concatenate([d, d_ex])).max(axis=1)
+    assert w.max() > 1.2                                   # oblique samples are in the test
+    assert np.allclose(bv[ids, 3:6], vals[ids, 3:6] * w[:, None], rtol=1e-6, atol=1e-7)
+    other = np.r_[0:3, 6:12]
+    assert np.array_equal(bv[:, other], vals[:, other])
