@@ -242,11 +242,13 @@ class Cluster:
         return max(1, min(n, trees))
 
     def run(self, st, params: BakeParams, tasks: list, cancel=None, progress=None,
-            passes=(0, 1)) -> list:
+            passes=(0, 1), buffers=None) -> list:
         """``bake_shard`` results of ``tasks`` (in order), computed on the workers.
 
         ``progress(fraction, message)`` counts finished shards (weighted by their trees) and
         samples; ``passes`` = (passes done, passes in all) places this pass in the bake.
+        ``buffers`` (shardmerge.MergeBuffers) hears of each result as it arrives and gets the
+        client's idle time between polls to touch the merge's memory.
         ``cancel()`` returning True, an error or Ctrl-C cancels every shard still queued or
         running, and raises. A shard's own error is raised as it was raised on the worker."""
         from distributed import wait
@@ -271,6 +273,10 @@ class Cluster:
                     i = futures.pop(f)
                     results[i] = self._result(f, i, len(tasks))
                     report.shard(i, len(results[i]["patch"]))
+                    if buffers is not None:
+                        buffers.add(results[i], len(tasks[i]["trees"]))
+                if buffers is not None and futures:
+                    buffers.touch()
                 if futures and self.client.status not in ("running", "connecting"):
                     raise self._lost(len(futures))
         finally:

@@ -9,7 +9,8 @@
       --overhead S --tree T.rit
       the shard plan of the deeper full bake on W worker threads and the one-core cost of
       ``--sample`` of its shards (spread over the trees), baked here; the client's merge timed
-      at full scale (each shard's result stands in for the others of its size); projects the
+      at full scale (each shard's result stands in for the others of its size; its buffers
+      touched first, as the client does while it waits for the shards); projects the
       bake time on W workers from them, ``--overhead`` seconds per shard (``plan``) and the
       client's final write, timed on ``--tree`` (a baked full tree: bytes per sample, speed).
 
@@ -173,8 +174,19 @@ def project(args):
         # every shard's result stands in for one of the same size: the merge at full scale
         results = [baked[len(b)][i % len(baked[len(b)])] for i, b in enumerate(blocks)]
         samples = sum(len(r["patch"]) for r in results)
+        # the client's touching of the merge buffers, done while it waits for the shards
         t0 = time.perf_counter()
-        baker._merge(blocks, results)
+        buffers = baker.merge_buffers(trees)
+        for r, b in zip(results, blocks):
+            buffers.add(r, len(b))
+        while True:
+            before = buffers.touched_bytes
+            buffers.touch()
+            if buffers.touched_bytes == before:
+                break
+        touch = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        baker._merge(blocks, results, buffers)
         merge = time.perf_counter() - t0
         shard_s = per_tree * trees / len(blocks)
         waves = math.ceil(len(blocks) / w)
@@ -186,6 +198,8 @@ def project(args):
                              "sampled_shards": sum(len(v) for v in baked.values()),
                              "cpu_per_tree_s": round(per_tree, 4), "shard_s": round(shard_s, 2),
                              "waves": waves, "samples": samples, "merge_s": round(merge, 2),
+                             "touch_s": round(touch, 2), "touched_gb": round(
+                                 buffers.touched_bytes / 1e9, 2),
                              "write_s_est": round(write, 2), "bake_s_est": round(bake_s, 1),
                              "merge_share": round(merge / bake_s, 3)}
         print(json.dumps(out["workers"][w]), flush=True)

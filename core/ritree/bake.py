@@ -36,12 +36,15 @@ from .dircube import CUBE, DOMAIN, N_SLOTS, U_AXIS, UV_AXES, V_AXIS, cube_to_dir
 from .interp import FAIL, UNIT_CORNERS, angle_between, cell_weights
 from .quadtree import CORNERS, Forest
 from .region import Region
+from .shardmerge import MergeBuffers, block_shifts, interleave
 from .tree import (BOUNDARY, PATH_CHANGE, SAMPLE_FIELDS, UNVERIFIED, BakeParams, PackedSamples,
                    RITree, Samples)
 from .verify import viewpoint_errors
 
 # The angle threshold (degrees) of the refinement rule (refine_rule): the paper's value.
 REFINE_ANGLE_DEG = 20.0
+# The direction forest's per-node arrays a shard returns and the merge interleaves.
+_NODE_FIELDS = ("child", "corner", "level", "ix", "iy", "dir_err", "dir_flags")
 TRACE_CHUNK = 8192          # rays per worker task (bounds worker memory, keeps progress fluid)
 SLOT_MIN_DEPTH = 1e-9      # object-box parts nearer than this (x its extent) along a slot's
                             # axis are ignored by the slot test (they project to infinity)
@@ -508,17 +511,32 @@ class _Baker:
     # ------------------------------------------------------------------ shards
     def _bake_sharded(self, trees):
         """``_bake_directions`` on the cluster: consecutive blocks of ``trees`` baked by
-        ``bake_shard`` on the workers, merged here."""
+        ``bake_shard`` on the workers, merged here (into buffers touched while waiting)."""
         blocks = np.array_split(trees, self.cluster.shard_count(len(trees)))
         blocks = [b for b in blocks if len(b)]
         prog = self.progress
+        buffers = self.merge_buffers(len(trees))
         results = self.cluster.run(self.st, self.params, [self._shard_task(b) for b in blocks],
-                                   self.cancel, prog.cb, (prog.passes_done, prog.passes))
+                                   self.cancel, prog.cb, (prog.passes_done, prog.passes),
+                                   buffers)
         t0 = time.perf_counter()
-        self._merge(blocks, results)
+        self._merge(blocks, results, buffers)
         self.merge_s += time.perf_counter() - t0
         self.shards += len(blocks)
         prog.end_pass()
+
+    def _ids(self):
+        """Dtype of merged node and sample ids (packed: the final tree, as a file holds it)."""
+        return np.dtype(np.int32 if self.pack else np.int64)
+
+    def merge_buffers(self, trees: int) -> MergeBuffers:
+        """Buffers for the merge of a pass over ``trees`` direction trees."""
+        groups = {k: "nodes" for k in _NODE_FIELDS}
+        groups.update({k: "samples" for k in (PackedSamples.FIELDS if self.pack
+                                               else SAMPLE_FIELDS)})
+        return MergeBuffers(groups, {"nodes": len(self.dirf.child),
+                                     "samples": len(self.samples)}, trees,
+                            {"child": self._ids(), "corner": self._ids()})
 
     def _shard_task(self, block) -> dict:
         """What a worker needs to bake direction trees ``block`` (sorted): their viewpoints and
@@ -528,25 +546,26 @@ class _Baker:
         return {"trees": inv.ravel() * N_SLOTS + block % N_SLOTS, "vp_pos": self.vp_pos[vps],
                 "vp_face": self.vp_face[vps], "rect": self.rect[rows], "pack": self.pack}
 
-    def _merge(self, blocks, results):
+    def _merge(self, blocks, results, buffers=None):
         """Append the shards' trees (``results`` of ``bake_shard`` for ``blocks``) as one local
         pass over all of them makes them: nodes in (level, shard, shard's order), samples in
-        (stage, shard, shard's order); ids in node and sample arrays renumbered to match. Each
-        array is one concatenation of contiguous blocks; ids are remapped shard by shard."""
+        (stage, shard, shard's order); ids in node and sample arrays renumbered to match, shard
+        by shard as they are copied. Each array is written once, into ``buffers`` (a
+        MergeBuffers) where they hold it."""
         f, K0, S0 = self.dirf, len(self.dirf.child), len(self.samples)
         self._record(np.zeros(0, np.int64), np.float32(0), np.uint8(0))    # grow to K0
         ncount = np.array([r["node_counts"] for r in results])
         scount = np.array([r["sample_counts"] for r in results])
-        nshift, sshift = _block_shifts(ncount, K0), _block_shifts(scount, S0)
-        child, corner, ex = [], [], {k: [v] for k, v in self.ex.items()}
-        ids = np.int32 if self.pack else np.int64     # packed: the final tree, as a file holds it
+        nshift, sshift = block_shifts(ncount, K0), block_shifts(scount, S0)
+        nmaps, smaps, ex = [], [], {k: [v] for k, v in self.ex.items()}
+        ids = self._ids()
         for i, (block, r) in enumerate(zip(blocks, results)):
             # new ids of the shard's nodes and samples, and -1 (an id of -1 stays -1)
             nmap = np.append(np.arange(len(r["level"])) + nshift[i, r["level"]], -1).astype(ids)
             smap = np.append(np.arange(len(r["patch"])) + np.repeat(sshift[i], scount[i]),
                              -1).astype(ids)
-            child.append(nmap[r["child"]])
-            corner.append(smap[r["corner"]])
+            nmaps.append(nmap)
+            smaps.append(smap)
             f.root[block] = nmap[r["root"]]
             ex["ex_node"].append(nmap[r["ex_node"]])
             ex["ex_ids"].append(smap[r["ex_ids"]])
@@ -554,20 +573,23 @@ class _Baker:
                 ex[k].append(r[k])
             self.tracer.rays += int(r["rays"])
             self.remote_cpu_s += float(r["cpu_s"])
-        for k, parts in (("child", child), ("corner", corner)):
-            setattr(f, k, _interleave(parts, ncount, getattr(f, k).astype(ids)))
+
+        def merged(name, counts, head, maps=None):
+            return interleave([r[name] for r in results], counts, head,
+                              None if buffers is None else buffers.get(name), maps)
+
+        f.child = merged("child", ncount, f.child.astype(ids), nmaps)
+        f.corner = merged("corner", ncount, f.corner.astype(ids), smaps)
         for k in ("level", "ix", "iy"):
-            setattr(f, k, _interleave([r[k] for r in results], ncount, getattr(f, k)))
-        self.dir_err = _interleave([r["dir_err"] for r in results], ncount, self.dir_err)
-        self.dir_flags = _interleave([r["dir_flags"] for r in results], ncount, self.dir_flags)
+            setattr(f, k, merged(k, ncount, getattr(f, k)))
+        self.dir_err = merged("dir_err", ncount, self.dir_err)
+        self.dir_flags = merged("dir_flags", ncount, self.dir_flags)
         if self.pack:                  # the first and only pass: nothing to put before it
-            self.samples = PackedSamples(**{k: _interleave([r[k] for r in results], scount,
-                                                           results[0][k][:0])
+            self.samples = PackedSamples(**{k: merged(k, scount, results[0][k][:0])
                                             for k in PackedSamples.FIELDS},
                                          lo=self.box_lo, hi=self.box_hi)
         else:
-            self.samples = Samples(**{k: _interleave([r[k] for r in results], scount,
-                                                     getattr(self.samples, k))
+            self.samples = Samples(**{k: merged(k, scount, getattr(self.samples, k))
                                       for k in SAMPLE_FIELDS})
         self.ex = {k: np.concatenate(v) for k, v in ex.items()}
         order = np.argsort(self.ex["ex_node"], kind="stable")      # sorted runs: merged
@@ -696,25 +718,6 @@ def bake_shard(st, params: BakeParams, task: dict) -> dict:
             **{k: getattr(smp, k) for k in fields},
             **{k: v.astype(i32) if k in ("ex_node", "ex_ids", "ex_corner") else v
                for k, v in b.ex.items()}}
-
-
-def _block_shifts(counts, base):
-    """(n, k) id shifts for n shards' blocks of k keys (``counts[s, j]`` items of key j in shard
-    s, each shard's items key-major): the merged order is key-major, then shard, so item i of
-    shard s with key j gets id ``base + i + shift[s, j]``."""
-    key_start = np.concatenate([[0], np.cumsum(counts.sum(0))[:-1]])
-    shard_off = np.cumsum(counts, axis=0) - counts
-    local_start = np.cumsum(counts, axis=1) - counts
-    return base + key_start[None] + shard_off - local_start
-
-
-def _interleave(parts, counts, head):
-    """``head`` then the items of ``parts`` (one array per shard, key-major with
-    ``counts[s, j]`` items of key j) in key-major, then shard order: one concatenation."""
-    start = np.cumsum(counts, axis=1) - counts
-    return np.concatenate([head] + [parts[s][start[s, j]:start[s, j] + counts[s, j]]
-                                    for j in range(counts.shape[1]) for s in range(len(parts))
-                                    if counts[s, j]])
 
 
 def refine_rule():
