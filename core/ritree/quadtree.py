@@ -133,14 +133,48 @@ class Forest:
         return np.stack([cx, cy], axis=2)
 
     def arrays(self, prefix: str) -> dict[str, np.ndarray]:
-        """The forest as named arrays (for the cache file)."""
-        return {f"{prefix}.{k}": getattr(self, k) for k in
-                ("domain", "root", "child", "level", "ix", "iy", "corner")}
+        """The forest as named arrays (for the cache file): per-tree domains and roots, the
+        nodes' child links and the leaves' corners, in node order. Levels, cell indices and
+        the inner nodes' corners follow from them (``from_arrays``)."""
+        return {f"{prefix}.domain": self.domain, f"{prefix}.root": self.root,
+                f"{prefix}.child": self.child, f"{prefix}.leaf_corner": self.corner[self.child < 0]}
 
     @classmethod
     def from_arrays(cls, arrays, prefix: str) -> "Forest":
-        return cls(**{k: arrays[f"{prefix}.{k}"] for k in
-                      ("domain", "root", "child", "level", "ix", "iy", "corner")})
+        """``arrays``' forest (Forest.arrays): levels and cell indices walked down from the
+        roots; an inner node's corner j is its child j's corner j, gathered up from the
+        leaves (the same grid point: the bake keys direction samples on it; inner viewpoint
+        cells, which the bake leaves without viewpoints, get them too, and nothing reads
+        them). ValueError where the links are not a forest of quadtrees."""
+        domain, root, child, leaf_corner = (np.asarray(arrays[f"{prefix}.{k}"]) for k in
+                                            ("domain", "root", "child", "leaf_corner"))
+        k = len(child)
+        leaf = child < 0
+        if leaf_corner.shape != (int(leaf.sum()), 4) or np.any(child > k - 4) \
+                or np.any(root >= k) or np.any(root < -1):
+            raise ValueError(f"{prefix} forest: child links, roots and leaf corners disagree")
+        level = np.zeros(k, np.int8)
+        ix, iy = np.zeros(k, np.int32), np.zeros(k, np.int32)
+        corner = np.full((k, 4), -1, leaf_corner.dtype)
+        corner[leaf] = leaf_corner
+        seen = np.zeros(k, bool)
+        levels, nodes = [], root[root >= 0]
+        while len(nodes):
+            if seen[nodes].any() or len(levels) > 127:
+                raise ValueError(f"{prefix} forest: a node is reached twice")
+            seen[nodes] = True
+            levels.append(nodes)
+            inner = nodes[child[nodes] >= 0]
+            kids = child[inner][:, None] + np.arange(4)
+            level[kids] = level[inner][:, None] + 1
+            ix[kids] = 2 * ix[inner][:, None] + CORNERS[:, 0]
+            iy[kids] = 2 * iy[inner][:, None] + CORNERS[:, 1]
+            nodes = kids.ravel()
+        for nodes in reversed(levels):
+            inner = nodes[child[nodes] >= 0]
+            corner[inner] = corner[child[inner][:, None] + np.arange(4), np.arange(4)]
+        return cls(domain=domain, root=root, child=child, level=level, ix=ix, iy=iy,
+                   corner=corner)
 
 
 # Memory a DenseLocator's table may take (int32 entries): a grid of 2^L x 2^L cells per built

@@ -23,8 +23,14 @@ from .quadtree import CORNERS, DenseLocator, Forest
 SAMPLE_FIELDS = ("out_o", "out_d", "point", "normal", "patch", "null", "tree")
 # Version of the tree's array layout inside a .rit file (the file format has its own version):
 # a reader refuses other layouts with a message to re-bake. 2: the bake's measured errors and
-# flags per direction node and viewpoint node (dir_err, dir_flags, vp_err, vp_flags).
-TREE_LAYOUT = 2
+# flags per direction node and viewpoint node (dir_err, dir_flags, vp_err, vp_flags). 3: what
+# follows from the rest is not stored (levels, cell indices and inner corners of the forests,
+# the outputs of samples that miss the object), small ranges in small dtypes.
+TREE_LAYOUT = 3
+# Extra samples' cell-local positions are stored as uint16 multiples of 1 / EX_POS_SCALE where
+# that is exact (the bake's edge search lands on binary fractions: search_steps <= 15), else
+# as float32.
+EX_POS_SCALE = 1 << 15
 # Bits of dir_flags / vp_flags: what the bake's tests saw in a leaf cell.
 UNVERIFIED = 1    # the cell failed its test (error above the tolerance, a class or null state its
                   # corners do not share, no interpolation) and could not be split further
@@ -141,6 +147,8 @@ class PackedSamples:
     hi: np.ndarray
 
     FIELDS = ("out_o_q", "out_d_q", "point_q", "normal_q", "patch", "null", "tree")
+    CODES = FIELDS[:4]          # the output codes (stored for hits only)
+    STORED = ("patch", "null_bits", "tree_table", "tree_code") + CODES
 
     def __len__(self) -> int:
         return len(self.patch)
@@ -160,6 +168,39 @@ class PackedSamples:
     @property
     def normal(self) -> np.ndarray:
         return decode_unit_vectors(self.normal_q)
+
+    def stored(self) -> dict[str, np.ndarray]:
+        """The cache file's sample arrays: the codes of the samples that hit the object only
+        (a miss's output is its input ray, which the tree never interpolates), null flags as
+        bits, ray-tree hashes as indices into their distinct values."""
+        hit = self.patch >= 0
+        table = np.unique(self.tree).astype(np.uint32)
+        code = np.searchsorted(table, self.tree)
+        return {"patch": self.patch, "null_bits": np.packbits(self.null, bitorder="little"),
+                "tree_table": table,
+                "tree_code": code.astype(np.uint8 if len(table) <= 1 << 8 else
+                                         np.uint16 if len(table) <= 1 << 16 else np.uint32),
+                **{k: getattr(self, k)[hit] for k in self.CODES}}
+
+    @classmethod
+    def from_stored(cls, a: dict, lo, hi) -> "PackedSamples":
+        """PackedSamples.stored's arrays back (misses' codes are zeros). ValueError where
+        their lengths disagree."""
+        patch = np.asarray(a["patch"])
+        n, hit = len(patch), patch >= 0
+        table, code = np.asarray(a["tree_table"]), np.asarray(a["tree_code"])
+        if len(code) != n or code.max(initial=0) >= max(len(table), 1) \
+                or len(a["null_bits"]) != (n + 7) // 8 \
+                or any(len(a[k]) != int(hit.sum()) for k in cls.CODES):
+            raise ValueError("sample arrays disagree in length")
+        codes = {}
+        for k in cls.CODES:
+            q = np.asarray(a[k])
+            codes[k] = np.zeros((n,) + q.shape[1:], q.dtype)
+            codes[k][hit] = q
+        null = np.unpackbits(np.asarray(a["null_bits"]), count=n, bitorder="little").view(bool)
+        return cls(**codes, patch=patch, null=null,
+                   tree=table[code] if n else np.zeros(0, np.uint32), lo=lo, hi=hi)
 
     def gather(self, ids) -> np.ndarray:
         """(..., 12) float64 values of sample ids; each distinct sample is decoded once."""
@@ -310,19 +351,21 @@ class RITree:
         return np.where(p >= 0, self.class_of[np.maximum(p, 0)], -1)
 
     def arrays(self) -> dict[str, np.ndarray]:
+        """The tree as the cache file's named arrays (layout 3, docs/tree-format.md)."""
         out = {"box_lo": self.box_lo, "box_hi": self.box_hi, "class_of": self.class_of,
                "vp_pos": self.vp_pos, "vp_face": self.vp_face, "dir_rect": self.dir_rect,
-               "ex_node": self.ex_node, "ex_kind": self.ex_kind, "ex_ids": self.ex_ids,
-               "ex_pos": self.ex_pos, "ex_corner": self.ex_corner, "dir_err": self.dir_err,
+               "ex_node": _ids(self.ex_node), "ex_kind": self.ex_kind.astype(np.int8),
+               "ex_ids": _ids(self.ex_ids), "ex_pos": _ex_pos_codes(self.ex_pos),
+               "ex_corner": self.ex_corner.astype(np.int8), "dir_err": self.dir_err,
                "dir_flags": self.dir_flags, "vp_err": self.vp_err, "vp_flags": self.vp_flags}
-        out.update(self.vp_forest.arrays("vp"))
-        out.update(self.dir_forest.arrays("dir"))
-        for k in ("dir.child", "dir.corner", "vp.child", "vp.corner", "ex_ids"):
-            if out[k].size == 0 or (out[k].max() < 2**31 - 1):
-                out[k] = out[k].astype(np.int32)
+        for name, forest in (("vp", self.vp_forest), ("dir", self.dir_forest)):
+            a = forest.arrays(name)
+            for k in ("child", "leaf_corner"):
+                a[f"{name}.{k}"] = _ids(a[f"{name}.{k}"])
+            out.update(a)
         packed = self.samples if isinstance(self.samples, PackedSamples) else \
             self.samples.packed(self.box_lo, self.box_hi)
-        out.update({f"s.{k}": getattr(packed, k) for k in PackedSamples.FIELDS})
+        out.update({f"s.{k}": v for k, v in packed.stored().items()})
         return out
 
     def header(self) -> dict:
@@ -331,7 +374,9 @@ class RITree:
 
     _ARRAYS = ("box_lo", "box_hi", "class_of", "vp_pos", "vp_face", "dir_rect", "ex_node", "ex_kind",
                "ex_ids", "ex_pos", "ex_corner", "dir_err", "dir_flags", "vp_err", "vp_flags") \
-        + tuple(f"s.{k}" for k in PackedSamples.FIELDS)
+        + tuple(f"{f}.{k}" for f in ("vp", "dir") for k in ("domain", "root", "child",
+                                                            "leaf_corner")) \
+        + tuple(f"s.{k}" for k in PackedSamples.STORED)
 
     @classmethod
     def from_parts(cls, header: dict, arrays: dict) -> "RITree":
@@ -342,17 +387,38 @@ class RITree:
         if missing:
             raise TreeCacheError(f"RI-Tree file lacks arrays {missing}; re-bake the tree")
         a = {k: np.asarray(v) for k, v in arrays.items()}   # plain views of the memory map
+        lo, hi = np.asarray(a["box_lo"]), np.asarray(a["box_hi"])
+        try:
+            vp_forest, dir_forest = (Forest.from_arrays(a, f) for f in ("vp", "dir"))
+            samples = PackedSamples.from_stored({k: a[f"s.{k}"] for k in PackedSamples.STORED},
+                                                lo, hi)
+        except ValueError as e:
+            raise TreeCacheError(f"RI-Tree file is inconsistent ({e}); re-bake the tree") from None
+        ex_pos = a["ex_pos"]
+        if ex_pos.dtype == np.uint16:
+            ex_pos = (ex_pos / np.float32(EX_POS_SCALE)).astype(np.float32)
         return cls(params=BakeParams(**header["params"]).validate(), box_lo=a["box_lo"],
                    box_hi=a["box_hi"], diag=float(header["diag"]), class_of=a["class_of"],
-                   vp_forest=Forest.from_arrays(a, "vp"), vp_pos=a["vp_pos"],
-                   vp_face=a["vp_face"], dir_forest=Forest.from_arrays(a, "dir"),
-                   dir_rect=a["dir_rect"],
-                   samples=PackedSamples(**{k: a[f"s.{k}"] for k in PackedSamples.FIELDS},
-                                         lo=np.asarray(a["box_lo"]), hi=np.asarray(a["box_hi"])),
+                   vp_forest=vp_forest, vp_pos=a["vp_pos"], vp_face=a["vp_face"],
+                   dir_forest=dir_forest, dir_rect=a["dir_rect"], samples=samples,
                    ex_node=a["ex_node"], ex_kind=a["ex_kind"], ex_ids=a["ex_ids"],
-                   ex_pos=a["ex_pos"], ex_corner=a["ex_corner"], dir_err=a["dir_err"],
+                   ex_pos=ex_pos, ex_corner=a["ex_corner"], dir_err=a["dir_err"],
                    dir_flags=a["dir_flags"], vp_err=a["vp_err"], vp_flags=a["vp_flags"],
                    meta={k: v for k, v in header.items() if k not in ("layout", "params", "diag")})
+
+
+def _ids(a: np.ndarray) -> np.ndarray:
+    """Node or sample ids as int32 where they fit."""
+    return a.astype(np.int32) if a.size == 0 or a.max() < 2**31 - 1 else a
+
+
+def _ex_pos_codes(pos: np.ndarray) -> np.ndarray:
+    """Extra-sample positions as uint16 codes (x EX_POS_SCALE) where exact, else float32."""
+    code = np.rint(np.asarray(pos, np.float64) * EX_POS_SCALE)
+    if np.array_equal(code / EX_POS_SCALE, pos) and code.min(initial=0) >= 0 \
+            and code.max(initial=0) <= EX_POS_SCALE:
+        return code.astype(np.uint16)
+    return np.asarray(pos, np.float32)
 
 
 def save(tree: RITree, path) -> None:

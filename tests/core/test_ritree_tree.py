@@ -16,6 +16,7 @@ Trees are tiny (viewpoint depth <= 4, direction depth <= 4, a few viewpoint cell
 once per module with workers=1.
 """
 
+import copy
 import re
 
 import numpy as np
@@ -35,7 +36,7 @@ from riray.ritree.query import (EXTRAPOLATED_S, FULL, MISS, NULL_S, OUTSIDE, RED
                                 QueryOptions, TreeQuery)
 from riray.ritree.region import Region
 
-from riray.ritree.tree import BakeParams, RITree, Samples
+from riray.ritree.tree import EX_POS_SCALE, BakeParams, PackedSamples, RITree, Samples
 from riray.scene.model import ObjectMaterial, Patch, RenderSettings, Scene, SpecularObject
 
 
@@ -1037,6 +1038,92 @@ def same_answers(t1, t2, st, o, d, tmax):
         assert np.array_equal(a1, a2) and np.array_equal(w1, w2)
         for k, v in r1.__dict__.items():
             assert np.array_equal(v, getattr(r2, k)), k
+
+
+def test_stored_forest_derives_levels_cells_and_inner_corners(mirror, sphere_trees):
+    """Layout 3 stores child links and leaf corners only: levels, cell indices and corners
+    derived from them equal the baked forests' (two bakes). Inner direction nodes' corners
+    are their children's (the same grid points); inner viewpoint nodes, which the bake gives
+    no viewpoints, get their children's too."""
+    for tree in (mirror[1], sphere_trees[4, 4]):
+        for name, f in (("vp", tree.vp_forest), ("dir", tree.dir_forest)):
+            a = f.arrays(name)
+            assert set(a) == {f"{name}.{k}" for k in ("domain", "root", "child", "leaf_corner")}
+            g = Forest.from_arrays(a, name)
+            for k in ("root", "child", "level", "ix", "iy"):
+                assert np.array_equal(getattr(g, k), getattr(f, k)), (name, k)
+            inner = np.flatnonzero(f.child >= 0)
+            assert len(inner) > 4 and f.max_level >= 2
+            leaf = f.child < 0
+            assert np.array_equal(g.corner[leaf], f.corner[leaf]), name
+            kids = g.child[inner][:, None] + np.arange(4)
+            assert np.array_equal(g.corner[inner], g.corner[kids, np.arange(4)]), name
+            if name == "dir":
+                assert np.array_equal(g.corner, f.corner)
+
+
+def test_malformed_forest_links_are_refused(tmp_path, mirror):
+    _, tree = mirror
+    a = tree.dir_forest.arrays("dir")
+    child = a["dir.child"]
+    cycle = child.copy()
+    cycle[np.flatnonzero(child >= 0)[-1]] = 0          # a deep node's children: the roots
+    for change in ({"dir.child": cycle},
+                   {"dir.child": np.where(child >= 0, len(child), -1)},   # out of range
+                   {"dir.leaf_corner": a["dir.leaf_corner"][1:]}):        # a leaf short
+        with pytest.raises(ValueError, match="dir forest"):
+            Forest.from_arrays({**a, **change}, "dir")
+    path = tmp_path / "bad.rit"
+    cache.save_tree(path, tree.header(), {**tree.arrays(), "dir.child": cycle.astype(np.int32)})
+    header, arrays = cache.load_tree(path)
+    with pytest.raises(cache.TreeCacheError, match="inconsistent.*re-bake"):
+        RITree.from_parts(header, arrays)
+
+
+def test_stored_samples_round_trip():
+    """Misses keep no output codes (zeros on load); hits, patches, null flags and ray-tree
+    hashes come back exactly; hashes are indices into their distinct values, in the
+    smallest dtype that holds them."""
+    rng = np.random.default_rng(5)
+    n = 1001
+    patch = np.where(rng.random(n) < 0.4, -1, rng.integers(0, 9, n)).astype(np.int16)
+    for distinct, dtype in ((3, np.uint8), (300, np.uint16)):
+        hashes = rng.choice(rng.integers(0, 2**32, distinct, dtype=np.uint64), n)
+        ps = PackedSamples(out_o_q=rng.integers(0, 65535, (n, 3)).astype(np.uint16),
+                           out_d_q=rng.integers(-32767, 32767, (n, 2)).astype(np.int16),
+                           point_q=rng.integers(0, 65535, (n, 3)).astype(np.uint16),
+                           normal_q=rng.integers(-32767, 32767, (n, 2)).astype(np.int16),
+                           patch=patch, null=rng.random(n) < 0.1, tree=hashes.astype(np.uint32),
+                           lo=np.zeros(3), hi=np.ones(3))
+        st = ps.stored()
+        assert st["tree_code"].dtype == dtype and len(st["out_d_q"]) == (patch >= 0).sum()
+        back = PackedSamples.from_stored(st, ps.lo, ps.hi)
+        hit = patch >= 0
+        for k in PackedSamples.CODES:
+            assert np.array_equal(getattr(back, k)[hit], getattr(ps, k)[hit])
+            assert not getattr(back, k)[~hit].any()
+        for k in ("patch", "null", "tree"):
+            assert np.array_equal(getattr(back, k), getattr(ps, k)), k
+    with pytest.raises(ValueError, match="disagree"):
+        PackedSamples.from_stored({**st, "out_o_q": st["out_o_q"][1:]}, ps.lo, ps.hi)
+
+
+def test_extra_positions_are_stored_exactly(tmp_path, mirror):
+    """Binary fractions (the bake's edge search) as uint16 codes, exact; anything else stays
+    float32."""
+    _, tree = mirror
+    assert len(tree.ex_pos) and tree.arrays()["ex_pos"].dtype == np.uint16
+    path = tmp_path / "t.rit"
+    cache.save_tree(path, tree.header(), tree.arrays())
+    back = RITree.from_parts(*cache.load_tree(path))
+    assert np.array_equal(back.ex_pos, tree.ex_pos) and back.ex_pos.dtype == np.float32
+    assert tree.arrays()["ex_pos"].max() <= EX_POS_SCALE
+    odd = copy.copy(tree)
+    odd.ex_pos = tree.ex_pos.copy()
+    odd.ex_pos[0, 0, 0] = np.float32(1 / 3)
+    assert odd.arrays()["ex_pos"].dtype == np.float32
+    back = RITree.from_parts(odd.header(), odd.arrays())
+    assert np.array_equal(back.ex_pos, odd.ex_pos)
 
 
 def test_cache_round_trip_answers_bit_identically(tmp_path, sphere_st, sphere_trees):
