@@ -173,25 +173,25 @@ class PackedSamples:
         """The cache file's sample arrays: the codes of the samples that hit the object only
         (a miss's output is its input ray, which the tree never interpolates), null flags as
         bits, ray-tree hashes as indices into their distinct values."""
-        hit = self.patch >= 0
+        hit = np.flatnonzero(self.patch >= 0)             # row take: faster than a mask
         table = np.unique(self.tree).astype(np.uint32)
         code = np.searchsorted(table, self.tree)
         return {"patch": self.patch, "null_bits": np.packbits(self.null, bitorder="little"),
                 "tree_table": table,
                 "tree_code": code.astype(np.uint8 if len(table) <= 1 << 8 else
                                          np.uint16 if len(table) <= 1 << 16 else np.uint32),
-                **{k: getattr(self, k)[hit] for k in self.CODES}}
+                **{k: getattr(self, k).take(hit, axis=0) for k in self.CODES}}
 
     @classmethod
     def from_stored(cls, a: dict, lo, hi) -> "PackedSamples":
         """PackedSamples.stored's arrays back (misses' codes are zeros). ValueError where
         their lengths disagree."""
         patch = np.asarray(a["patch"])
-        n, hit = len(patch), patch >= 0
+        n, hit = len(patch), np.flatnonzero(patch >= 0)
         table, code = np.asarray(a["tree_table"]), np.asarray(a["tree_code"])
         if len(code) != n or code.max(initial=0) >= max(len(table), 1) \
                 or len(a["null_bits"]) != (n + 7) // 8 \
-                or any(len(a[k]) != int(hit.sum()) for k in cls.CODES):
+                or any(len(a[k]) != len(hit) for k in cls.CODES):
             raise ValueError("sample arrays disagree in length")
         codes = {}
         for k in cls.CODES:
@@ -409,7 +409,7 @@ class RITree:
 
 def _ids(a: np.ndarray) -> np.ndarray:
     """Node or sample ids as int32 where they fit."""
-    return a.astype(np.int32) if a.size == 0 or a.max() < 2**31 - 1 else a
+    return a.astype(np.int32, copy=False) if a.size == 0 or a.max() < 2**31 - 1 else a
 
 
 def _ex_pos_codes(pos: np.ndarray) -> np.ndarray:
