@@ -133,8 +133,9 @@ class Samples:
 
 @dataclass
 class PackedSamples:
-    """Samples as stored in a cache file (possibly memory-mapped): decoded on gather, or whole
-    through the out_o / out_d / point / normal properties."""
+    """Samples as packed codes (codec.py; what bake shards return, and a cache file holds in
+    the form of ``stored``): decoded on gather, or whole through the out_o / out_d / point /
+    normal properties."""
 
     out_o_q: np.ndarray     # (S, 3) uint16 point codes in the box [lo, hi]
     out_d_q: np.ndarray     # (S, 2) int16 octahedral codes (zero vector reserved)
