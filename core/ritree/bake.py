@@ -525,7 +525,7 @@ class _Baker:
         self.shards += len(blocks)
         prog.end_pass()
 
-    def _ids(self):
+    def _id_dtype(self):
         """Dtype of merged node and sample ids (packed: the final tree, as a file holds it)."""
         return np.dtype(np.int32 if self.pack else np.int64)
 
@@ -536,7 +536,7 @@ class _Baker:
                                                else SAMPLE_FIELDS)})
         return MergeBuffers(groups, {"nodes": len(self.dirf.child),
                                      "samples": len(self.samples)}, trees,
-                            {"child": self._ids(), "corner": self._ids()})
+                            {"child": self._id_dtype(), "corner": self._id_dtype()})
 
     def _shard_task(self, block) -> dict:
         """What a worker needs to bake direction trees ``block`` (sorted): their viewpoints and
@@ -558,7 +558,7 @@ class _Baker:
         scount = np.array([r["sample_counts"] for r in results])
         nshift, sshift = block_shifts(ncount, K0), block_shifts(scount, S0)
         nmaps, smaps, ex = [], [], {k: [v] for k, v in self.ex.items()}
-        ids = self._ids()
+        ids = self._id_dtype()
         for i, (block, r) in enumerate(zip(blocks, results)):
             # new ids of the shard's nodes and samples, and -1 (an id of -1 stays -1)
             nmap = np.append(np.arange(len(r["level"])) + nshift[i, r["level"]], -1).astype(ids)

@@ -150,8 +150,9 @@ class Forest:
                                             ("domain", "root", "child", "leaf_corner"))
         k = len(child)
         leaf = child < 0
-        if leaf_corner.shape != (int(leaf.sum()), 4) or np.any(child > k - 4) \
-                or np.any(root >= k) or np.any(root < -1):
+        if leaf_corner.shape != (int(leaf.sum()), 4) or np.any(child < -1) \
+                or np.any((child >= 0) & (child > k - 4)) or np.any(root >= k) \
+                or np.any(root < -1):
             raise ValueError(f"{prefix} forest: child links, roots and leaf corners disagree")
         level = np.zeros(k, np.int8)
         ix, iy = np.zeros(k, np.int32), np.zeros(k, np.int32)
@@ -160,7 +161,7 @@ class Forest:
         seen = np.zeros(k, bool)
         levels, nodes = [], root[root >= 0]
         while len(nodes):
-            if seen[nodes].any() or len(levels) > 127:
+            if seen[nodes].any() or len(np.unique(nodes)) < len(nodes):
                 raise ValueError(f"{prefix} forest: a node is reached twice")
             seen[nodes] = True
             levels.append(nodes)

@@ -462,8 +462,9 @@ class TreeQuery:
 
     def _blend_bilinear(self, loc, items, set_of, pc, o, d, tmax, res, ans, why):
         """Rays ``loc`` (of sets ``set_of``, classes ``pc``) whose 16 corners are all usable:
-        bilinear weights at both levels, one blend (the general path's weights and answers,
-        without its per-ray rules)."""
+        bilinear weights at both levels, one blend (the general path's answers, without its
+        per-ray rules; the weights are formed in float32, the blend's precision, so the
+        representative patch of two weights equal to float32 rounding may be the other's)."""
         W = bilinear_weights(loc.alpha, loc.beta)                            # (n, 4)
         # W_k times DQ k's bilinear weights, float32 (the blend's precision)
         wr = np.empty((len(loc), 4, 4), np.float32)

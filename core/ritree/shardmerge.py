@@ -32,10 +32,15 @@ def interleave(parts, counts, head, buf=None, maps=None):
     """``head`` then the items of ``parts`` (one array per shard, key-major with ``counts[s,
     j]`` items of key j) in key-major, then shard order. Written into the first rows of
     ``buf`` where it has room (else a new array); with ``maps`` (one per shard), shard s's
-    items are ids renumbered as ``maps[s][item]`` (an item of -1 maps to the map's last entry)."""
+    items are ids renumbered as ``maps[s][item]`` (an item of -1 maps to the map's last entry;
+    ValueError for an id outside the map)."""
     start = np.cumsum(counts, axis=1) - counts
+    if maps is not None:
+        for part, m in zip(parts, maps):
+            if part.size and (part.min() < -1 or part.max() >= len(m) - 1):
+                raise ValueError("a shard's ids lie outside its id map")
     n = len(head) + int(counts.sum())
-    dtype = np.result_type(head, *parts[:1]) if maps is None else maps[0].dtype
+    dtype = np.result_type(head, *parts) if maps is None else maps[0].dtype
     if buf is not None and len(buf) >= n and buf.dtype == dtype \
             and buf.shape[1:] == head.shape[1:]:
         out = buf[:n]
@@ -63,7 +68,8 @@ class MergeBuffers:
     "samples"): a group's fields have one row per item of it, ``head[group]`` rows before
     this pass. Dtypes are the shards' unless ``dtypes`` names one (renumbered ids). A
     group's size is estimated per direction tree of the shards received so far; a larger
-    estimate later replaces its buffers (their touching starts over)."""
+    estimate later replaces its buffers (their touching starts over). The merged arrays are
+    views of the buffers, which hold up to MARGIN more rows (untouched past the estimate)."""
 
     def __init__(self, groups: dict, head: dict, trees: int, dtypes: dict | None = None):
         self.groups, self.head, self.trees = groups, head, trees

@@ -190,7 +190,7 @@ class PackedSamples:
         patch = np.asarray(a["patch"])
         n, hit = len(patch), np.flatnonzero(patch >= 0)
         table, code = np.asarray(a["tree_table"]), np.asarray(a["tree_code"])
-        if len(code) != n or code.max(initial=0) >= max(len(table), 1) \
+        if len(code) != n or (n and int(code.max()) >= len(table)) \
                 or len(a["null_bits"]) != (n + 7) // 8 \
                 or any(len(a[k]) != len(hit) for k in cls.CODES):
             raise ValueError("sample arrays disagree in length")
@@ -284,7 +284,9 @@ class RITree:
         direction cube), so that one weighted sum of these rows blends every column and the
         blended direction is perspective-correct. The weight depends only on the sample's
         input direction, so it is computed once per sample: from the corners of every
-        direction node and from the extras' cell-local positions."""
+        direction node and from the extras' cell-local positions. A second table beside
+        ``table.vals`` (whose unit directions the pairwise thresholds compare): 48 bytes a
+        sample, 150 MB on a 3.2 M-sample full tree."""
         f, n = self.dir_forest, len(self.samples)
         scale = np.ones(n)
         tree = f.tree_of_nodes()
@@ -361,7 +363,7 @@ class RITree:
                "dir_flags": self.dir_flags, "vp_err": self.vp_err, "vp_flags": self.vp_flags}
         for name, forest in (("vp", self.vp_forest), ("dir", self.dir_forest)):
             a = forest.arrays(name)
-            for k in ("child", "leaf_corner"):
+            for k in ("root", "child", "leaf_corner"):
                 a[f"{name}.{k}"] = _ids(a[f"{name}.{k}"])
             out.update(a)
         packed = self.samples if isinstance(self.samples, PackedSamples) else \

@@ -1062,14 +1062,29 @@ def test_stored_forest_derives_levels_cells_and_inner_corners(mirror, sphere_tre
                 assert np.array_equal(g.corner, f.corner)
 
 
+def test_tiny_forests_round_trip():
+    """No nodes, and trees that are one root leaf each, load back (no children to check)."""
+    for roots in ([], [0], [0, 2]):
+        f = Forest.empty(np.zeros((3, 4)))
+        ids = f.add_roots(np.array(roots, np.int64))
+        f.corner[ids] = np.arange(4 * len(ids)).reshape(-1, 4)
+        g = Forest.from_arrays(f.arrays("vp"), "vp")
+        for k in ("root", "child", "level", "ix", "iy", "corner"):
+            assert np.array_equal(getattr(g, k), getattr(f, k)), (roots, k)
+
+
 def test_malformed_forest_links_are_refused(tmp_path, mirror):
     _, tree = mirror
     a = tree.dir_forest.arrays("dir")
     child = a["dir.child"]
     cycle = child.copy()
     cycle[np.flatnonzero(child >= 0)[-1]] = 0          # a deep node's children: the roots
-    for change in ({"dir.child": cycle},
+    twice = a["dir.root"].copy()
+    built = np.flatnonzero(twice >= 0)
+    twice[built[1]] = twice[built[0]]                  # two trees share a root
+    for change in ({"dir.child": cycle}, {"dir.root": twice},
                    {"dir.child": np.where(child >= 0, len(child), -1)},   # out of range
+                   {"dir.child": np.where(child >= 0, child, -2)},        # not a link
                    {"dir.leaf_corner": a["dir.leaf_corner"][1:]}):        # a leaf short
         with pytest.raises(ValueError, match="dir forest"):
             Forest.from_arrays({**a, **change}, "dir")
@@ -1085,10 +1100,11 @@ def test_stored_samples_round_trip():
     hashes come back exactly; hashes are indices into their distinct values, in the
     smallest dtype that holds them."""
     rng = np.random.default_rng(5)
-    n = 1001
-    patch = np.where(rng.random(n) < 0.4, -1, rng.integers(0, 9, n)).astype(np.int16)
-    for distinct, dtype in ((3, np.uint8), (300, np.uint16)):
-        hashes = rng.choice(rng.integers(0, 2**32, distinct, dtype=np.uint64), n)
+    for distinct, dtype, n in ((3, np.uint8, 1001), (300, np.uint16, 1001),
+                               (70000, np.uint32, 150000), (0, np.uint8, 0)):
+        patch = np.where(rng.random(n) < 0.4, -1, rng.integers(0, 9, n)).astype(np.int16)
+        hashes = rng.permutation(np.arange(distinct, dtype=np.uint64) * 61 + 7)
+        hashes = np.concatenate([hashes, rng.choice(hashes, n - distinct)]) if n else hashes
         ps = PackedSamples(out_o_q=rng.integers(0, 65535, (n, 3)).astype(np.uint16),
                            out_d_q=rng.integers(-32767, 32767, (n, 2)).astype(np.int16),
                            point_q=rng.integers(0, 65535, (n, 3)).astype(np.uint16),
@@ -1104,8 +1120,11 @@ def test_stored_samples_round_trip():
             assert not getattr(back, k)[~hit].any()
         for k in ("patch", "null", "tree"):
             assert np.array_equal(getattr(back, k), getattr(ps, k)), k
-    with pytest.raises(ValueError, match="disagree"):
-        PackedSamples.from_stored({**st, "out_o_q": st["out_o_q"][1:]}, ps.lo, ps.hi)
+        if n:
+            for change in ({"out_o_q": st["out_o_q"][1:]}, {"tree_code": st["tree_code"][1:]},
+                           {"tree_table": st["tree_table"][:0]}):
+                with pytest.raises(ValueError, match="disagree"):
+                    PackedSamples.from_stored({**st, **change}, ps.lo, ps.hi)
 
 
 def test_extra_positions_are_stored_exactly(tmp_path, mirror):

@@ -2,6 +2,7 @@
 buffers (estimates, growth, touching, use) - the cluster tests check whole merged trees."""
 
 import numpy as np
+import pytest
 
 from riray.ritree.shardmerge import MergeBuffers, block_shifts, interleave
 
@@ -37,6 +38,21 @@ def test_interleave_and_shifts_against_a_reference():
         ref = [list(r) for r in head] + [[maps[s][x] for x in parts[s][i]]
                                          for (s, i), _ in sorted(pos.items(), key=lambda kv: kv[1])]
         assert np.array_equal(got, np.array(ref).reshape(-1, 2))
+
+
+def test_interleave_keeps_every_shards_values_and_checks_ids():
+    """Shards may return different dtypes (int16 patch ids in one, int32 in another): the
+    merged array holds them all. Ids outside a shard's map are an error, not wrapped."""
+    counts = np.array([[2], [1]])
+    got = interleave([np.array([1, 2], np.int16), np.array([40000], np.int32)], counts,
+                     np.zeros(0, np.int16), buf=np.zeros(5, np.int16))
+    assert got.dtype == np.int32 and np.array_equal(got, [1, 2, 40000])
+    maps = [np.array([5, 6, -1]), np.array([7, -1])]
+    ok = interleave([np.array([0, -1]), np.array([0])], counts, np.zeros(0, np.int64), maps=maps)
+    assert np.array_equal(ok, [5, -1, 7])
+    for bad in (np.array([0, 2]), np.array([0, -2])):
+        with pytest.raises(ValueError, match="outside"):
+            interleave([bad, np.array([0])], counts, np.zeros(0, np.int64), maps=maps)
 
 
 def test_interleave_writes_into_a_buffer_with_room_only():
