@@ -48,7 +48,8 @@ def _query_options(args):
                         threshold_leaves=args.threshold_leaves,
                         null_interp=args.null_rays == "interpolate",
                         max_error_deg=None if args.max_error < 0 else args.max_error,
-                        path_identity=args.path_identity).validate()
+                        path_identity=args.path_identity,
+                        mirror_normal=args.mirror_rays == "reflect").validate()
 
 
 def _tree_opts(p):
@@ -81,6 +82,10 @@ def _tree_opts(p):
     p.add_argument("--null-rays", choices=("interpolate", "trace"), default="interpolate",
                    help="a ray whose interpolants are all null (trapped) is answered null "
                    "(interpolate, the default) or traced (trace, the paper)")
+    p.add_argument("--mirror-rays", choices=("reflect", "interpolate"), default="reflect",
+                   help="mirrors: a ray whose usable samples all reflect once leaves along the "
+                   "query direction reflected about the interpolated normal (reflect, the "
+                   "default) or along the interpolated output ray (interpolate, the paper)")
 
 
 def _bake_opts(p):

@@ -144,6 +144,11 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                                  precision=3,
                                  description="Largest baked error of an interpolated ray "
                                              "(degrees)")
+    use_mirror_normal: BoolProperty(name="Reflect about normal", default=True,
+                                    description="Mirrors: a ray whose usable samples all "
+                                                "reflect once leaves along the view ray "
+                                                "reflected about the interpolated normal, "
+                                                "instead of the interpolated output ray")
     use_path_identity: BoolProperty(name="Path identity", default=False,
                                     description="Trace a ray whose usable samples follow "
                                                 "different paths (ray-tree hash), or whose "
@@ -275,7 +280,7 @@ BAKE_KEYS = ("viewpoint_depth", "viewpoint_refine", "direction_depth", "min_dire
              "use_frame_range")
 QUERY_KEYS = ("policy", "use_angle_threshold", "angle_deg", "use_distance_threshold", "distance",
               "use_extrapolation", "extrapolation", "use_null_interp", "use_max_error",
-              "max_error_deg", "use_path_identity")
+              "max_error_deg", "use_path_identity", "use_mirror_normal")
 
 
 def query_options(obj) -> dict:
@@ -287,7 +292,8 @@ def query_options(obj) -> dict:
             "extrapolation": float(p.extrapolation) if p.use_extrapolation else None,
             "null_interp": bool(p.use_null_interp),
             "max_error_deg": float(p.max_error_deg) if p.use_max_error else None,
-            "path_identity": bool(p.use_path_identity)}
+            "path_identity": bool(p.use_path_identity),
+            "mirror_normal": bool(p.use_mirror_normal)}
 
 
 def bake_params(obj) -> dict:

@@ -55,6 +55,7 @@ def draw_bake_panel(layout, context) -> None:
         sub.prop(p, val, text=p.bl_rna.properties[use].name)
     col.prop(p, "use_null_interp")
     col.prop(p, "use_path_identity")
+    col.prop(p, "use_mirror_normal")
     col = layout.column(align=True)
     col.prop(p, "bake_for_cameras")
     sub = col.row()

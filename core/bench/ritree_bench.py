@@ -80,8 +80,9 @@ ROW_LABELS = {"exact": "ray traced", "interp": "interpolated (no angle threshold
 
 
 def paper(**kw) -> QueryOptions:
-    """The paper's rules with options ``kw``: no baked-error tolerance."""
-    return QueryOptions(max_error_deg=None, **kw)
+    """The paper's rules with options ``kw``: no baked-error tolerance, mirror rays
+    interpolated."""
+    return QueryOptions(**{"max_error_deg": None, "mirror_normal": False, **kw})
 SAMPLES_PER_LOOKUP = 16      # a query ray reads 4 viewpoints x 4 direction-cell corners
 SAMPLES_PER_EXTRA = 2        # ... and at least 2 extra samples when a leaf's extras answer it
 TRACER_KEYS = ("pairs", "newton_iters", "fallback_pairs")

@@ -15,7 +15,10 @@ the four direction trees give four leaf cells (DQs), 16 samples in all. Then
 - policy "raytree" (Bala et al., for comparison): interpolate only when all 16 samples have
   identical ray trees; trace otherwise.
 Interpolated first-hit points and normals feed local illumination; a dielectric's reflected
-ray and Fresnel weight come from the interpolated normal.
+ray and Fresnel weight come from the interpolated normal. A mirror ray whose usable samples
+all reflect once is answered as the exact tracer answers it from its hit: the query direction
+reflected about the interpolated normal (``mirror_normal``, on by default: on the teapot and
+the bowl it cuts the mean error by a fifth; the paper blends the output rays).
 """
 
 from __future__ import annotations
@@ -90,6 +93,10 @@ class QueryOptions:
                                        # keep the tolerance, which then traces every ray)
     path_identity: bool = False        # trace rays whose usable samples differ in ray-tree hash
                                        # or whose leaves / cell the bake saw change path
+    mirror_normal: bool = True         # mirrors ("ri" policy): a ray whose usable samples all
+                                       # reflect once leaves along the query direction reflected
+                                       # about the interpolated normal, from the interpolated
+                                       # hit point; False: the interpolated output ray (paper)
 
     def validate(self) -> "QueryOptions":
         if self.policy not in ("ri", "raytree"):
@@ -356,6 +363,10 @@ class TreeQuery:
             u_set, u_pc = set_of[ufirst], pc[ufirst]
             u_ok = (tab.cls[items.ids[u_set]] == u_pc[:, None]) & ~tab.null[items.ids[u_set]]
             u_ok[:, 16:] &= np.repeat(items.has_extra[u_set], 4, axis=1)      # (U, 32) usable
+            # units whose usable samples all reflect once: answered from the normal
+            u_once = None
+            if opt.mirror_normal and self.material.kind == "mirror":
+                u_once = np.all(tab.once[items.ids[u_set]] | ~u_ok, axis=1)
             # the DQs whose samples the thresholds compare: all, or those the bake could not
             # verify (split to the maximum depth: a shallower leaf's midpoint matched)
             u_checked = np.ones((len(u_set), 4), bool)
@@ -379,7 +390,8 @@ class TreeQuery:
                 e, h = np.flatnonzero(easy), np.flatnonzero(~easy)
                 with clock("blend"):
                     self._blend_bilinear(loc.take(go[e]), items, set_of[e], pc[e], o, d, tmax,
-                                         res, ans, why)
+                                         res, ans, why,
+                                         None if u_once is None else u_once[unit_of[e]])
                 go, set_of, pc, unit_of = go[h], set_of[h], pc[h], unit_of[h]
                 m = len(go)
         with clock("weights"):
@@ -451,7 +463,8 @@ class TreeQuery:
             g = cand[gc]
             self._fill(res, ans, rows[g], o, d, tmax, out[gc, 0:3], od[gc] / lod[gc, None],
                        out[gc, 6:9], nm[gc] / lnm[gc, None], pc[g],
-                       tab.patch[items.ids[set_of[g], best[gc]]].astype(np.int64))
+                       tab.patch[items.ids[set_of[g], best[gc]]].astype(np.int64),
+                       once=None if u_once is None else u_once[unit_of[g]])
             if opt.null_interp:
                 # units holding a null sample of their class: their failed rays may be null
                 u_null = np.any(tab.null[s_ids[u_set]] & (s_cls[u_set] == u_pc[:, None]), axis=1)
@@ -460,11 +473,12 @@ class TreeQuery:
                     self._null(loc.take(r), s_ids[set_of[r]], pc[r], o, d, tmax, res, ans, why)
         return len(two)
 
-    def _blend_bilinear(self, loc, items, set_of, pc, o, d, tmax, res, ans, why):
+    def _blend_bilinear(self, loc, items, set_of, pc, o, d, tmax, res, ans, why, once=None):
         """Rays ``loc`` (of sets ``set_of``, classes ``pc``) whose 16 corners are all usable:
         bilinear weights at both levels, one blend (the general path's answers, without its
         per-ray rules; the weights are formed in float32, the blend's precision, so the
-        representative patch of two weights equal to float32 rounding may be the other's)."""
+        representative patch of two weights equal to float32 rounding may be the other's).
+        ``once``: rays answered from the normal (see ``_fill``)."""
         W = bilinear_weights(loc.alpha, loc.beta)                            # (n, 4)
         # W_k times DQ k's bilinear weights, float32 (the blend's precision)
         wr = np.empty((len(loc), 4, 4), np.float32)
@@ -483,7 +497,8 @@ class TreeQuery:
         g = np.flatnonzero(ok)
         self._fill(res, ans, rows[g], o, d, tmax, out[g, 0:3], od[g] / lod[g, None],
                    out[g, 6:9], nm[g] / lnm[g, None], pc[g],
-                   self.table.patch[items.ids[set_of[g], best[g]]].astype(np.int64))
+                   self.table.patch[items.ids[set_of[g], best[g]]].astype(np.int64),
+                   once=None if once is None else once[g])
 
     def _blend(self, items, set_of, cand, W, w, item, is_extra):
         """Blend rays ``cand`` (of sets ``set_of``) with viewpoint weights W (m, 4) and per-DQ
@@ -716,7 +731,12 @@ class TreeQuery:
         best = np.argmax(np.abs(weights), axis=1)
         return self.table.patch[ids[np.arange(len(ids)), best]].astype(np.int64)
 
-    def _fill(self, res, ans, rows, o, d, tmax, oo, od, pt, nm, cls, patch, null=False):
+    def _fill(self, res, ans, rows, o, d, tmax, oo, od, pt, nm, cls, patch, null=False,
+              once=None):
+        """Write interpolated answers (output ray oo, od; first hit pt, unit normal nm) into
+        ``res``. ``once`` (bool per row): rays of a mirror whose samples all reflect once,
+        answered as the tracer answers such a ray from its hit - leaving from pt along the
+        query direction reflected about nm - instead of by the blended output ray."""
         dd = d[rows]
         t_first = np.einsum("ij,ij->i", pt - o[rows], dd)
         # the environment is in front of the interpolated hit: the object is not seen
@@ -726,8 +746,12 @@ class TreeQuery:
             k = ~hidden
             rows, oo, od, pt, nm, cls, patch, dd, t_first = (
                 a[k] for a in (rows, oo, od, pt, nm, cls, patch, dd, t_first))
+            once = None if once is None else once[k]
         flip = np.einsum("ij,ij->i", nm, dd) > 0
         nm = np.where(flip[:, None], -nm, nm)
+        if once is not None and once.any():
+            od = np.where(once[:, None], reflect(dd, nm), od)
+            oo = np.where(once[:, None], pt, oo)
         res.hit[rows] = True
         res.null[rows] = null
         res.out_origin[rows] = oo

@@ -225,6 +225,8 @@ class SampleTable:
     null: np.ndarray        # (S,) bool
     patch: np.ndarray       # (S,) int32
     tree: np.ndarray        # (S,) uint32 ray-tree hash
+    once: np.ndarray        # (S,) bool: a hit that left the object at its first hit (a mirror
+                            # ray reflected once: out_o and point hold the same code)
 
     @classmethod
     def of(cls, samples, class_of) -> "SampleTable":
@@ -233,8 +235,10 @@ class SampleTable:
             vals[:, 3 * c:3 * c + 3] = getattr(samples, k)
         patch = np.asarray(samples.patch, np.int32)
         klass = np.where(patch >= 0, np.asarray(class_of)[np.maximum(patch, 0)], -1)
-        return cls(vals=vals, cls=klass.astype(np.int32), null=np.asarray(samples.null, bool),
-                   patch=patch, tree=np.asarray(samples.tree, np.uint32))
+        null = np.asarray(samples.null, bool)
+        once = (klass >= 0) & ~null & np.all(vals[:, 0:3] == vals[:, 6:9], axis=1)
+        return cls(vals=vals, cls=klass.astype(np.int32), null=null, patch=patch,
+                   tree=np.asarray(samples.tree, np.uint32), once=once)
 
 
 @dataclass

@@ -79,7 +79,8 @@ def viewpoint_errors(tree, st, cameras):
     if len(o) == 0:
         return err, flags
     ex = st.object_function(o, d, tmax)
-    paper = QueryOptions(angle_deg=None, max_error_deg=None)     # the rules, no tolerance
+    # the rules without a tolerance; mirror rays as the default query answers them
+    paper = QueryOptions(angle_deg=None, max_error_deg=None)
     res, ans, _, _ = TreeQuery(tree, st, paper)(o, d, tmax)
     e = np.full(len(o), np.nan)
     interp = (ans >= FULL) & (ans <= EXTRAPOLATED_S)

@@ -65,6 +65,11 @@ Rules (policy "ri"; paper sections 4.1-4.3, 5.1-5.4), per ray:
     no extra samples); success -> NULL_S with the interpolated hit point and normal.
 11. Hidden: an interpolated (or null) first hit at t >= tmax along the query ray -> MISS.
     Normals are turned to face the query ray.
+12. Mirror normal (``mirror_normal``, after the rules of the paper, commit of issue #11's
+    stop 15): on a mirror, an interpolated ray (rules 5-9) whose usable samples - corners and
+    the four leaves' extra samples of its class, not null - all left the object at their
+    first hit leaves from its interpolated hit point along the query direction mirrored about
+    its interpolated normal.
 
 Policy "raytree": OUTSIDE / MISS as above; all 16 samples with the same ray-tree hash, the same
 class and none null -> bilinear at both levels (perspective-weighted) -> FULL, or MISS for the
@@ -300,14 +305,33 @@ def candidates(data, cell):
     return "two", sorted({int(data.patch[s]) for s in flat if data.patch[s] >= 0})
 
 
-def finish(ans, o, d, tmax, oo, od, pt, nm, cls, info):
-    """The hidden rule and the output of an interpolated ray (rule 11)."""
+def finish(ans, o, d, tmax, oo, od, pt, nm, cls, info, once=False):
+    """The hidden rule and the output of an interpolated ray (rule 11); ``once`` (rule 12): the
+    ray leaves from its first hit pt along d mirrored in the plane normal to nm."""
     t_first = float(np.dot(pt - o, d))
     if t_first >= tmax:
         return Answer(MISS, 0, info={**info, "hidden": True})
     if float(np.dot(nm, d)) > 0:
         nm = -nm
+    if once:
+        oo, od = pt, d - 2.0 * float(np.dot(d, nm)) * nm
+        info = {**info, "once": True}
     return Answer(ans, 0, oo, od, pt, nm, cls, info)
+
+
+def reflects_once(data, cell, pc):
+    """Rule 12's condition: the object is a mirror and every usable sample of the ray (corners
+    and the four leaves' extra samples of class pc, not null) left the object where it first
+    hit it (output origin = first-hit point)."""
+    if not data.mirror:
+        return False
+    ids = [s for row in cell.ids for s in row]
+    for leaf in cell.leaves:
+        e = data.extra.get(int(leaf))
+        if e is not None:
+            ids += [int(s) for s in data.tree.ex_ids[e]]
+    return all(np.linalg.norm(data.vals[s, 0:3] - data.vals[s, 6:9]) <= 1e-9 * data.diag
+               for s in ids if data.cls[s] == pc and not data.null[s])
 
 
 def within_tolerance(data, cell, tol):
@@ -443,8 +467,9 @@ def answer_ri(data, cell, pc, o, d, tmax, opt):
     blend = lod > MIN_BLEND_NORM and lnm > MIN_BLEND_NORM
     if not few and not cut and blend:
         worst = max([BILINEAR, qkind] + [kind[k] for k in range(4) if ok[k]])
+        once = getattr(opt, "mirror_normal", False) and reflects_once(data, cell, pc)
         return finish(KIND_CODE[worst], o, d, tmax, out[0:3], od / lod, out[6:9], nm / lnm,
-                      pc, info)
+                      pc, info, once)
     why = WHY_USABLE if few else WHY_THRESHOLD if cut else WHY_BLEND
     if few and opt.null_interp:
         nul = answer_null(data, cell, pc, o, d, tmax, info)
@@ -559,6 +584,7 @@ class Reference:
 
     def __init__(self, tree, st, o, d, tmax):
         self.data = TreeData(tree)
+        self.data.mirror = st.scene.object.material.kind == "mirror"
         self.o = np.asarray(o, np.float64)
         self.d = np.asarray(d, np.float64)
         self.tmax = np.asarray(tmax, np.float64)

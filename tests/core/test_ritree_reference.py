@@ -46,8 +46,9 @@ from riray.scene.samples import build
 
 
 def paper(**kw) -> QueryOptions:
-    """The paper's rules (no baked-error tolerance) with options ``kw``."""
-    return QueryOptions(max_error_deg=None, **kw)
+    """The paper's rules (no baked-error tolerance, interpolated mirror rays) with options
+    ``kw``."""
+    return QueryOptions(**{"max_error_deg": None, "mirror_normal": False, **kw})
 
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
@@ -83,6 +84,10 @@ OPTIONS = {
     "tolerance_angle20": QueryOptions(angle_deg=20.0, max_error_deg=4.0),
     "path": paper(angle_deg=None, path_identity=True),
     "tolerance_path": QueryOptions(angle_deg=None, max_error_deg=2.0, path_identity=True),
+    "mirror_normal": paper(angle_deg=None, mirror_normal=True),
+    "mirror_normal_angle20": paper(angle_deg=20.0, extrapolation=0.25, mirror_normal=True),
+    "tolerance_mirror_normal": QueryOptions(angle_deg=None, max_error_deg=2.0,
+                                            mirror_normal=True),
 }
 
 # Cases: scene, camera baked for, BakeParams, max_events override, extra cameras whose rays are
@@ -101,7 +106,8 @@ CASES = {
                    params=BakeParams(viewpoint_depth=3, direction_depth=5, viewpoint_refine=0),
                    max_events=None, extra_cameras=(), clip=0.0,
                    options=("angle_off", "angle20", "unverified", "extrapolation", "raytree",
-                            "intermediate_dist", "tolerance", "tolerance_path")),
+                            "intermediate_dist", "tolerance", "tolerance_path", "mirror_normal",
+                            "mirror_normal_angle20")),
     # the glass vase with at most 3 events: rays through both walls are trapped (null)
     "vase_glass_trapped": dict(scene="vase_glass", camera="close",
                                params=BakeParams(viewpoint_depth=3, direction_depth=5,
@@ -114,7 +120,7 @@ CASES = {
                                           viewpoint_refine=0),
                         max_events=None, extra_cameras=(), clip=0.3,
                         options=("angle_off", "unverified", "extrapolation", "intermediate",
-                                 "distance", "tolerance")),
+                                 "distance", "tolerance", "tolerance_mirror_normal")),
 }
 PAIRS = [(c, o) for c, spec in CASES.items() for o in spec["options"]]
 
@@ -246,6 +252,8 @@ def test_rules_are_exercised(cases):
                 paths["unverified leaves skipped"] += 1
             if info.get("hidden"):
                 paths["hidden"] += 1
+            if info.get("once"):
+                paths["mirror normal"] += 1
     print("answer kinds:", {f"{ANSWER_NAMES[a]}/{WHY_NAMES[w] or '-'}": n
                             for (a, w), n in sorted(kinds.items())})
     print("rule paths:", dict(sorted(paths.items())))
@@ -265,7 +273,7 @@ def test_rules_are_exercised(cases):
                   "extra triangle 1", "extra extrapolated",
                   "direction-level outlier dropped, answered",
                   "viewpoint-level outlier dropped, answered", "unverified leaves skipped",
-                  "hidden")
+                  "hidden", "mirror normal")
     missing = {p: paths[p] for p in need_paths if paths[p] < 3}
     assert not missing, f"rules too rarely reached: {missing}; all: {dict(paths)}"
 
