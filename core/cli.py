@@ -83,9 +83,10 @@ def _tree_opts(p):
                    help="a ray whose interpolants are all null (trapped) is answered null "
                    "(interpolate, the default) or traced (trace, the paper)")
     p.add_argument("--mirror-rays", choices=("reflect", "interpolate"), default="reflect",
-                   help="mirrors: a ray whose usable samples all reflect once leaves along the "
-                   "query direction reflected about the interpolated normal (reflect, the "
-                   "default) or along the interpolated output ray (interpolate, the paper)")
+                   help="mirrors, policy ri: a ray whose usable samples all reflect once leaves "
+                   "along the query direction reflected about the interpolated normal "
+                   "(reflect, the default) or along the interpolated output ray (interpolate, "
+                   "the paper)")
 
 
 def _bake_opts(p):

@@ -16,6 +16,7 @@ from functools import cached_property
 
 import numpy as np
 
+from ..trace.objectfn import one_reflection_hash
 from .cache import TreeCacheError, fingerprint, load_tree, save_tree
 from .codec import decode_points, decode_unit_vectors, encode_points, encode_unit_vectors
 from .quadtree import CORNERS, DenseLocator, Forest
@@ -225,8 +226,8 @@ class SampleTable:
     null: np.ndarray        # (S,) bool
     patch: np.ndarray       # (S,) int32
     tree: np.ndarray        # (S,) uint32 ray-tree hash
-    once: np.ndarray        # (S,) bool: a hit that left the object at its first hit (a mirror
-                            # ray reflected once: out_o and point hold the same code)
+    once: np.ndarray        # (S,) bool: a hit whose ray-tree hash is one reflection off its
+                            # patch (a mirror ray that left at its first hit)
 
     @classmethod
     def of(cls, samples, class_of) -> "SampleTable":
@@ -236,9 +237,10 @@ class SampleTable:
         patch = np.asarray(samples.patch, np.int32)
         klass = np.where(patch >= 0, np.asarray(class_of)[np.maximum(patch, 0)], -1)
         null = np.asarray(samples.null, bool)
-        once = (klass >= 0) & ~null & np.all(vals[:, 0:3] == vals[:, 6:9], axis=1)
-        return cls(vals=vals, cls=klass.astype(np.int32), null=null, patch=patch,
-                   tree=np.asarray(samples.tree, np.uint32), once=once)
+        tree = np.asarray(samples.tree, np.uint32)
+        once = (klass >= 0) & ~null & (tree == one_reflection_hash(patch))
+        return cls(vals=vals, cls=klass.astype(np.int32), null=null, patch=patch, tree=tree,
+                   once=once)
 
 
 @dataclass

@@ -23,6 +23,27 @@ from .patches import PatchHit, PatchTracer
 # Secondary rays start on the surface (to ~1e-11 of the object size after Newton); hits nearer
 # than this fraction of the object diagonal are the start point itself, not a new event.
 SECONDARY_T_MIN_REL = 1e-7
+# The ray-tree hash of a path (32 bits, FNV-1a style): from the seed, each event folds in the
+# code 4 * patch + 4 + kind (kind 1: reflection or TIR, 2: refraction).
+TREE_HASH_SEED = 2166136261
+TREE_HASH_PRIME = 16777619
+REFLECT, REFRACT = 1, 2
+
+
+def tree_hash_step(h, patch, kind):
+    """The running ray-tree hash ``h`` (uint64 array, 32-bit values) after an event of kind
+    ``kind`` on patches ``patch`` (>= 0)."""
+    code = np.asarray(patch).astype(np.uint64) * np.uint64(4) + np.uint64(4) \
+        + np.asarray(kind).astype(np.uint64)
+    return ((h ^ code) * np.uint64(TREE_HASH_PRIME)) & np.uint64(0xFFFFFFFF)
+
+
+def one_reflection_hash(patch) -> np.ndarray:
+    """(N,) uint32: the ray-tree hash of a path that reflects once off ``patch`` and leaves
+    (negative patches: a value of no path that matters; callers mask misses)."""
+    p = np.maximum(np.asarray(patch, np.int64), 0)
+    return tree_hash_step(np.full(p.shape, TREE_HASH_SEED, np.uint64), p,
+                          REFLECT).astype(np.uint32)
 
 
 @dataclass
@@ -118,7 +139,7 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
     cur_o, cur_d = o[act], d[act]
     pts, nrm = first.point[act], res.normal[act]
     patch = first.patch[act]
-    tree = np.full(len(act), 2166136261, dtype=np.uint64)       # FNV-1a style running hash
+    tree = np.full(len(act), TREE_HASH_SEED, dtype=np.uint64)   # the running ray-tree hash
     inside = np.zeros(len(act), bool) if inside is None else np.asarray(inside, bool)[act].copy()
     ior = float(material.ior)
     t_min2 = SECONDARY_T_MIN_REL * tracer.diag
@@ -134,10 +155,8 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
                 res.fresnel[act] = fresnel_dielectric(cos_i, eta)
                 res.refl_dir[act] = reflect(cur_d, nrm)
             inside ^= ~tir
-        kind = np.ones(len(act), np.uint64) if material.kind == "mirror" else \
-            np.where(tir, 1, 2).astype(np.uint64)
-        code = patch.astype(np.uint64) * np.uint64(4) + np.uint64(4) + kind
-        tree = ((tree ^ code) * np.uint64(16777619)) & np.uint64(0xFFFFFFFF)
+        kind = REFLECT if material.kind == "mirror" else np.where(tir, REFLECT, REFRACT)
+        tree = tree_hash_step(tree, patch, kind)
         cur_o = pts
         cur_d = new_d
         nxt = tracer.intersect(cur_o, cur_d, tmin=np.full(len(act), t_min2))

@@ -305,9 +305,10 @@ def candidates(data, cell):
     return "two", sorted({int(data.patch[s]) for s in flat if data.patch[s] >= 0})
 
 
-def finish(ans, o, d, tmax, oo, od, pt, nm, cls, info, once=False):
-    """The hidden rule and the output of an interpolated ray (rule 11); ``once`` (rule 12): the
-    ray leaves from its first hit pt along d mirrored in the plane normal to nm."""
+def finish(ans, o, d, tmax, oo, od, pt, nm, cls, info, once=None):
+    """The hidden rule and the output of an interpolated ray (rule 11); ``once`` (rule 12, None:
+    not asked): the ray leaves from its first hit pt along d mirrored in the plane normal to
+    nm."""
     t_first = float(np.dot(pt - o, d))
     if t_first >= tmax:
         return Answer(MISS, 0, info={**info, "hidden": True})
@@ -315,7 +316,8 @@ def finish(ans, o, d, tmax, oo, od, pt, nm, cls, info, once=False):
         nm = -nm
     if once:
         oo, od = pt, d - 2.0 * float(np.dot(d, nm)) * nm
-        info = {**info, "once": True}
+    if once is not None:
+        info = {**info, "once": once}
     return Answer(ans, 0, oo, od, pt, nm, cls, info)
 
 
@@ -467,7 +469,8 @@ def answer_ri(data, cell, pc, o, d, tmax, opt):
     blend = lod > MIN_BLEND_NORM and lnm > MIN_BLEND_NORM
     if not few and not cut and blend:
         worst = max([BILINEAR, qkind] + [kind[k] for k in range(4) if ok[k]])
-        once = getattr(opt, "mirror_normal", False) and reflects_once(data, cell, pc)
+        once = reflects_once(data, cell, pc) if getattr(opt, "mirror_normal", False) \
+            and data.mirror else None
         return finish(KIND_CODE[worst], o, d, tmax, out[0:3], od / lod, out[6:9], nm / lnm,
                       pc, info, once)
     why = WHY_USABLE if few else WHY_THRESHOLD if cut else WHY_BLEND

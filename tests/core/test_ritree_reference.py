@@ -252,8 +252,8 @@ def test_rules_are_exercised(cases):
                 paths["unverified leaves skipped"] += 1
             if info.get("hidden"):
                 paths["hidden"] += 1
-            if info.get("once"):
-                paths["mirror normal"] += 1
+            if info.get("once") is not None and ans_interpolated(rec.ans):
+                paths["mirror normal" if info["once"] else "mirror normal declined"] += 1
     print("answer kinds:", {f"{ANSWER_NAMES[a]}/{WHY_NAMES[w] or '-'}": n
                             for (a, w), n in sorted(kinds.items())})
     print("rule paths:", dict(sorted(paths.items())))
@@ -273,7 +273,7 @@ def test_rules_are_exercised(cases):
                   "extra triangle 1", "extra extrapolated",
                   "direction-level outlier dropped, answered",
                   "viewpoint-level outlier dropped, answered", "unverified leaves skipped",
-                  "hidden", "mirror normal")
+                  "hidden", "mirror normal", "mirror normal declined")
     missing = {p: paths[p] for p in need_paths if paths[p] < 3}
     assert not missing, f"rules too rarely reached: {missing}; all: {dict(paths)}"
 
