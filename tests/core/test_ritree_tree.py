@@ -312,9 +312,10 @@ def test_mirror_interpolation_is_exact_where_f_is_affine(mirror):
 
 
 def test_mirror_normal_rule_is_exact_on_a_plane(mirror):
-    """Mirror rays from the interpolated normal: on a plane the normal is one constant, so the
-    query direction reflected about it is the exact output ray on every box face, also where
-    the blended output ray is only an approximation (the side faces above: 0.29 deg)."""
+    """Mirror rays from the interpolated normal: on a plane the normal is one constant (stored
+    exactly: its octahedral code is exact for an axis), so the query direction reflected about
+    it is the exact output ray to rounding on every box face; the blended output ray is off by
+    the samples' quantization (measured: up to 4.7e-5 rad on the side faces)."""
     st, tree = mirror
     o, d = mirror_queries(tree, 20000, 1)
     res, ans, why, _ = TreeQuery(tree, st, paper(angle_deg=None, mirror_normal=True))(o, d)
@@ -323,7 +324,7 @@ def test_mirror_normal_rule_is_exact_on_a_plane(mirror):
     m = interpolated(ans) & ex.hit
     side = m & ~z_dominant(d)
     assert side.sum() > 100 and np.all(ex.events[m] == 1)
-    assert angle_between(res.out_dir[m], ex.out_dir[m]).max() < ANG32
+    assert angle_between(res.out_dir[m], ex.out_dir[m]).max() < 1e-9
     assert np.abs(res.out_origin[m] - res.point[m]).max() == 0.0     # it leaves from its hit
     assert np.abs(res.out_origin[m] - ex.out_origin[m]).max() < 0.2   # as interpolated above
 
