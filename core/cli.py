@@ -49,7 +49,8 @@ def _query_options(args):
                         null_interp=args.null_rays == "interpolate",
                         max_error_deg=None if args.max_error < 0 else args.max_error,
                         path_identity=args.path_identity,
-                        mirror_normal=args.mirror_rays == "reflect").validate()
+                        mirror_normal=args.mirror_rays in ("reflect", "newton"),
+                        mirror_newton=args.mirror_rays == "newton").validate()
 
 
 def _tree_opts(p):
@@ -82,11 +83,13 @@ def _tree_opts(p):
     p.add_argument("--null-rays", choices=("interpolate", "trace"), default="interpolate",
                    help="a ray whose interpolants are all null (trapped) is answered null "
                    "(interpolate, the default) or traced (trace, the paper)")
-    p.add_argument("--mirror-rays", choices=("reflect", "interpolate"), default="reflect",
+    p.add_argument("--mirror-rays", choices=("reflect", "newton", "interpolate"),
+                   default="reflect",
                    help="mirrors, policy ri: a ray whose usable samples all reflect once leaves "
                    "along the query direction reflected about the interpolated normal "
-                   "(reflect, the default) or along the interpolated output ray (interpolate, "
-                   "the paper)")
+                   "(reflect, the default), the same at the exact hit Newton finds from the "
+                   "interpolated patch parameters where those samples share one patch "
+                   "(newton), or along the interpolated output ray (interpolate, the paper)")
 
 
 def _bake_opts(p):
@@ -435,7 +438,8 @@ def build_parser():
     p = sub.add_parser("trace-rays", help="apply the object function f to a batch of rays",
                        description="Input: an N x 6 float64 .npy (origin xyz, direction xyz). "
                        "Output .npz arrays: hit, null, out_origin, out_dir, t_first, point, "
-                       "normal, patch, cls, events, refl_dir, fresnel (see docs/cli.md).")
+                       "normal, patch, cls, events, refl_dir, fresnel, tree, uv (see "
+                       "docs/cli.md).")
     scene_arg(p)
     p.add_argument("--rays", required=True, help="input .npy: N x 6 float64 rows (ox, oy, oz, "
                    "dx, dy, dz); directions need not be unit but must be non-zero")

@@ -5,7 +5,7 @@ bake makes (ritree/bake.py: ``bake_shard``, ``_Baker._merge``).
 A shard is a block of consecutive direction trees (the hemicube slots of consecutive
 viewpoints), baked whole on one worker: every direction level, the midpoint tests and the extra
 samples. It comes back as plain numpy arrays (nodes, float32 samples, extra samples; about
-90 bytes a sample with its nodes). Direction trees share no samples (a sample's key starts
+98 bytes a sample with its nodes). Direction trees share no samples (a sample's key starts
 with its tree), so every sample is traced once, in one shard, and nothing is deduplicated;
 corners that neighbouring cells of one tree share are deduplicated inside the shard, as in a
 local bake. Which viewpoint cells and slots to bake, the refinement passes of camera-region

@@ -149,6 +149,14 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                                                 "reflect once leaves along the view ray "
                                                 "reflected about the interpolated normal, "
                                                 "instead of the interpolated output ray")
+    use_mirror_newton: BoolProperty(name="Exact mirror hits", default=False,
+                                    description="With Reflect about normal, where those "
+                                                "samples share one NURBS patch: reflect at "
+                                                "the exact hit Newton's method finds from the "
+                                                "interpolated patch parameters (exact "
+                                                "reflections, more time per ray; also answers "
+                                                "such rays outside the error tolerance "
+                                                "unless the bake saw their path change)")
     use_path_identity: BoolProperty(name="Path identity", default=False,
                                     description="Trace a ray whose usable samples follow "
                                                 "different paths (ray-tree hash), or whose "
@@ -280,7 +288,7 @@ BAKE_KEYS = ("viewpoint_depth", "viewpoint_refine", "direction_depth", "min_dire
              "use_frame_range")
 QUERY_KEYS = ("policy", "use_angle_threshold", "angle_deg", "use_distance_threshold", "distance",
               "use_extrapolation", "extrapolation", "use_null_interp", "use_max_error",
-              "max_error_deg", "use_path_identity", "use_mirror_normal")
+              "max_error_deg", "use_path_identity", "use_mirror_normal", "use_mirror_newton")
 
 
 def query_options(obj) -> dict:
@@ -293,7 +301,8 @@ def query_options(obj) -> dict:
             "null_interp": bool(p.use_null_interp),
             "max_error_deg": float(p.max_error_deg) if p.use_max_error else None,
             "path_identity": bool(p.use_path_identity),
-            "mirror_normal": bool(p.use_mirror_normal)}
+            "mirror_normal": bool(p.use_mirror_normal),
+            "mirror_newton": bool(p.use_mirror_normal and p.use_mirror_newton)}
 
 
 def bake_params(obj) -> dict:

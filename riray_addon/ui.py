@@ -56,6 +56,9 @@ def draw_bake_panel(layout, context) -> None:
     col.prop(p, "use_null_interp")
     col.prop(p, "use_path_identity")
     col.prop(p, "use_mirror_normal")
+    sub = col.row()
+    sub.enabled = p.use_mirror_normal
+    sub.prop(p, "use_mirror_newton")
     col = layout.column(align=True)
     col.prop(p, "bake_for_cameras")
     sub = col.row()

@@ -6,7 +6,7 @@ engine never needs it; ``pip install 'riray[bench]'``).
   versus the interpolated frame's object-only time relative to the exact render's in the
   same pass (the ratio cancels the load of a shared machine, which single sweep passes do
   not); every sweep point, the render-time policies (angle threshold, baked-error tolerance,
-  tolerance with path identity) as curves and the raytree policy as a point, the Pareto
+  tolerance with path identity, on mirrors tolerance with exact mirror hits) as curves and the raytree policy as a point, the Pareto
   front (nothing else is both faster and more accurate) joined, the exact render at 1
   dashed.
 - ``bake_depth.png``: bake wall time and cache size versus direction depth, one line per
@@ -22,10 +22,11 @@ import math
 from pathlib import Path
 
 SWEEP_MARKERS = {"depth": "o", "tolerance": "s", "angle": "^", "distance": "v",
-                 "extrapolation": "D", "max_error": "P", "path": "X", "raytree": "h",
-                 "table": "*", "deeper tree": "p"}
+                 "extrapolation": "D", "max_error": "P", "path": "X", "newton": "d",
+                 "raytree": "h",
+                 "table": "*", "deeper tree": "p", "deeper tree, exact mirror hits": "8"}
 # Sweeps drawn as curves (points joined in time order): the render-time policies compared.
-CURVES = ("angle", "max_error", "path")
+CURVES = ("angle", "max_error", "path", "newton")
 
 
 def _plt():
@@ -77,8 +78,10 @@ def plot_pareto(result, path):
         rows = [dict(r, sweep="table") for r in result["tables"] if r["row"] != "exact"]
     else:            # the default tolerance on the deeper tree, on the swept view
         view = result["config"]["sweep_view"]
-        rows += [dict(r, sweep="deeper tree") for r in result["tables"]
-                 if r["row"] == "deeper" and r["view"] == view]
+        rows += [dict(r, sweep={"deeper": "deeper tree",
+                                "deeper_newton": "deeper tree, exact mirror hits"}[r["row"]])
+                 for r in result["tables"]
+                 if r["row"] in ("deeper", "deeper_newton") and r["view"] == view]
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     if not scenes:
         return None

@@ -6,7 +6,9 @@ is baked for that camera and five rows are measured: *exact* (every object ray t
 *interpolated* without an angle threshold, *interpolated* with the angle threshold,
 *interpolated* with the default baked-error tolerance, and the *raytree* policy (Bala et al.'s
 identical-ray-tree rule); a sixth, *deeper*, is the default tolerance on a second tree for the
-camera baked at ``deeper_tree``'s depths, against its own exact passes. Columns: rays traced,
+camera baked at ``deeper_tree``'s depths, against its own exact passes. On a mirror, each tree
+also gets the default tolerance with exact mirror hits (``--mirror-rays newton``: rows
+*interp_newton* and *deeper_newton*). Columns: rays traced,
 object-only and total CPU seconds (the paper's split, summed over a pass's shares) and a
 machine-independent work count - flat-sub-patch pairs solved by Newton and Newton iterations
 (tracing), samples gathered (interpolation: 16 per ray looked up in the tree, 2 more per ray
@@ -70,13 +72,16 @@ from ..scene.samples import SAMPLES, build
 from .exact_bench import machine
 
 VIEWS = ("far", "close", "zoom")
-ROWS = ("exact", "interp", "interp_angle", "interp_tol", "raytree", "deeper")
+ROWS = ("exact", "interp", "interp_angle", "interp_tol", "interp_newton", "raytree", "deeper",
+        "deeper_newton")
 ROW_LABELS = {"exact": "ray traced", "interp": "interpolated (no angle threshold)",
               "interp_angle": "interpolated (angle threshold {angle:g} deg)",
               "interp_tol": f"interpolated (default: max error {DEFAULT_MAX_ERROR_DEG:g} deg)",
+              "interp_newton": "default tolerance, exact mirror hits (--mirror-rays newton)",
               "raytree": "raytree policy (Bala et al.)",
               "deeper": "default tolerance, deeper tree (viewpoint depth {vp} + refine {vr}, "
-                         "direction depth {dd})"}
+                         "direction depth {dd})",
+              "deeper_newton": "deeper tree, exact mirror hits"}
 
 
 def paper(**kw) -> QueryOptions:
@@ -320,7 +325,8 @@ def measure_configs(st, cam, size, configs: dict, workers) -> dict:
                       "object_cpu_s": _median(ex_obj), "total_cpu_s": _median(ex_tot),
                       "object_cpu_s_all": ex_obj, "total_cpu_s_all": ex_tot,
                       **{k: int(first["s_x"].get(k, 0)) for k in TRACER_KEYS},
-                      "exact_first_hits": 0, "samples_gathered": 0,
+                      "exact_first_hits": 0, "exact_mirror_hits": 0, "newton_cpu_s": 0.0,
+                      "samples_gathered": 0,
                       "angle_mean_deg": 0.0, "angle_p99_deg": 0.0, "angle_max_deg": 0.0,
                       "psnr_db": float("inf"), "max_pixel_diff": 0.0, "hit_disagreements": 0}}
     images = {"exact": first["img_x"]}
@@ -345,6 +351,9 @@ def measure_configs(st, cam, size, configs: dict, workers) -> dict:
                    "query_own_cpu_s": _median(own), "query_own_fraction": _median(own_frac),
                    **{t: int(p["s_i"].get(t, 0)) for t in TRACER_KEYS},
                    "exact_first_hits": int(p["s_i"].get("exact_first_hits", 0)),
+                   "exact_mirror_hits": int(p["s_i"].get("exact_mirror_hits", 0)),
+                   "newton_cpu_s": _median([q["s_i"].get("query_newton_cpu_s", 0.0)
+                                            for q in ps]),
                    "samples_gathered": p["samples_gathered"], **_errors(p)}
         images[k] = p["img_i"]
         images[k + "_traced"] = p["traced_mask"]
@@ -369,10 +378,11 @@ class _Log:
                   flush=True)
 
 
-def _table_configs(cfg):
+def _table_configs(cfg, mirror=False):
     return {"interp": paper(angle_deg=None),
             "interp_angle": paper(angle_deg=cfg.angle),
             "interp_tol": QueryOptions(),
+            **({"interp_newton": QueryOptions(mirror_newton=True)} if mirror else {}),
             "raytree": paper(policy="raytree", angle_deg=None)}
 
 
@@ -384,7 +394,8 @@ def _n_steps(cfg):
             + len(cfg.max_errors) + len(cfg.path_max_errors) + 1
         n += per * len(cfg.sweep_scenes)
         if cfg.sweep_view in cfg.views:
-            n += len(_policy_points(cfg)) * len(set(cfg.scenes) - set(cfg.sweep_scenes))
+            n += sum(len(_policy_points(cfg, _is_mirror(name)))
+                     for name in set(cfg.scenes) - set(cfg.sweep_scenes))
     return n
 
 
@@ -409,22 +420,27 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
                 tree, brec = bake_view(st, scene, cam, cfg.size, params, workers, tree_dir)
                 log(f"{name}/{view}: baked in {brec['bake_s']:.1f} s, "
                     f"{brec['cache_bytes'] / 1e6:.2f} MB")
-                configs = {k: (tree, opt, cfg.repeats) for k, opt in _table_configs(cfg).items()}
+                mirror = scene.object.material.kind == "mirror"
+                configs = {k: (tree, opt, cfg.repeats)
+                           for k, opt in _table_configs(cfg, mirror).items()}
                 deeper = None
                 if cfg.deeper_tree is not None:
                     deeper = _bake_deeper(cfg, name, st, scene, cam, workers, tree_dir, log)
                     configs["deeper"] = (deeper[0], QueryOptions(), cfg.repeats)
+                    if mirror:
+                        configs["deeper_newton"] = (deeper[0], QueryOptions(mirror_newton=True),
+                                                    cfg.repeats)
                 points = []
                 if cfg.sweeps and view == cfg.sweep_view and name not in cfg.sweep_scenes:
                     # the policy curves of every scene's Pareto plot, on the table tree (the
                     # swept scenes get theirs with their sweeps)
-                    points = [(tree, brec, *pt) for pt in _policy_points(cfg)]
+                    points = [(tree, brec, *pt) for pt in _policy_points(cfg, mirror)]
                     configs.update(_point_configs(cfg, points))
                 rows = measure_configs(st, cam, cfg.size, configs, workers)
                 images = rows.pop("_images")
                 if cfg.images:
                     _save_images(out / "images", f"{name}_{view}", images)
-                for kind in (k for k in ROWS if k in rows and k != "deeper"):
+                for kind in (k for k in ROWS if k in rows and not k.startswith("deeper")):
                     tables.append({"scene": name, "view": view, "row": kind,
                                    "label": ROW_LABELS[kind].format(angle=cfg.angle),
                                    **_strip(rows[kind]), **_bake_cols(brec)})
@@ -432,7 +448,8 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
                 log(f"{name}/{view}: traced {r['rays_traced']}/{r['object_rays']}, object-only "
                     f"{rows['exact']['object_cpu_s']:.2f} -> {r['object_cpu_s']:.2f} s")
                 if deeper is not None:
-                    tables.append(_deeper_row(cfg, name, cam, rows["deeper"], deeper[1], log))
+                    tables += [_deeper_row(cfg, name, cam, rows[k], deeper[1], log, k)
+                               for k in ("deeper", "deeper_newton") if k in rows]
                     _drop_tree(*deeper, cfg)
                 sweeps += _point_rows(cfg, name, points, rows, log)
                 _drop_tree(tree, brec, cfg)
@@ -465,14 +482,15 @@ def _bake_deeper(cfg, name, st, scene, cam, workers, tree_dir, log) -> tuple:
     return tree, brec
 
 
-def _deeper_row(cfg, name, cam, r, brec, log) -> dict:
-    """The "deeper" row: the default options on the deeper tree, measured in the view's batch
-    against its own interleaved exact halves (its speed-up is of the same passes)."""
+def _deeper_row(cfg, name, cam, r, brec, log, kind="deeper") -> dict:
+    """A row on the deeper tree ("deeper": the default options; "deeper_newton": with exact
+    mirror hits), measured in the view's batch against its own interleaved exact halves (its
+    speed-up is of the same passes)."""
     vp, dd, vr = cfg.deeper_tree
-    log(f"{name}/{cam.name}: deeper tree traced {r['rays_traced']}/{r['object_rays']}, "
+    log(f"{name}/{cam.name}: {kind} traced {r['rays_traced']}/{r['object_rays']}, "
         f"object-only {r['exact_object_cpu_s']:.2f} -> {r['object_cpu_s']:.2f} s", step=False)
-    return {"scene": name, "view": cam.name, "row": "deeper",
-            "label": ROW_LABELS["deeper"].format(vp=vp, dd=dd, vr=vr),
+    return {"scene": name, "view": cam.name, "row": kind,
+            "label": ROW_LABELS[kind].format(vp=vp, dd=dd, vr=vr),
             **_strip(r), **_bake_cols(brec)}
 
 
@@ -509,17 +527,25 @@ def _point_rows(cfg, name, points, rows, log) -> list:
         out.append({"scene": name, "view": cfg.sweep_view, "sweep": sweep, **_bake_cols(brec),
                     "policy": opt.policy, "angle": opt.angle_deg, "distance": opt.distance,
                     "extrapolation": opt.extrapolation, "max_error": opt.max_error_deg,
-                    "path_identity": opt.path_identity, **x})
+                    "path_identity": opt.path_identity, "mirror_newton": opt.mirror_newton, **x})
     return out
 
 
+def _is_mirror(name) -> bool:
+    return build(name).object.material.kind == "mirror"
+
+
 # The render-time policies compared on every scene's Pareto plot (one tree, no re-bake).
-def _policy_points(cfg) -> list:
-    """(sweep, key, options): the angle threshold, the baked-error tolerance (alone and with
-    path identity) and the raytree policy."""
+def _policy_points(cfg, mirror=False) -> list:
+    """(sweep, key, options): the angle threshold, the baked-error tolerance (alone, with
+    path identity and, on a mirror, with exact mirror hits: ``--mirror-rays newton``) and the
+    raytree policy."""
+    newton = [("newton", f"{t}", QueryOptions(angle_deg=None, max_error_deg=t,
+                                              mirror_newton=True))
+              for t in cfg.max_errors] if mirror else []
     return ([("angle", f"{a}", paper(angle_deg=a)) for a in cfg.angles]
             + [("max_error", f"{t}", QueryOptions(angle_deg=None, max_error_deg=t))
-               for t in cfg.max_errors]
+               for t in cfg.max_errors] + newton
             + [("path", f"{t}", QueryOptions(angle_deg=None, max_error_deg=t,
                                              path_identity=True)) for t in cfg.path_max_errors]
             + [("raytree", "Bala et al.", paper(policy="raytree", angle_deg=None))])
@@ -634,13 +660,15 @@ def command_line(cfg: BenchConfig) -> str:
 TABLE_CSV = ("scene", "view", "row", "label", "rays_traced", "object_rays", "traced_fraction",
              "object_cpu_s", "total_cpu_s", "object_speedup", "total_speedup",
              "query_own_cpu_s", "query_own_fraction", "pairs",
-             "newton_iters", "fallback_pairs", "exact_first_hits", "samples_gathered",
+             "newton_iters", "fallback_pairs", "exact_first_hits", "exact_mirror_hits",
+             "newton_cpu_s", "samples_gathered",
              "angle_mean_deg", "angle_p99_deg", "angle_max_deg", "psnr_db", "max_pixel_diff",
              "hit_disagreements", "viewpoint_depth", "direction_depth", "viewpoint_refine",
              "tolerance", "bake_s",
              "bake_cpu_s", "cache_bytes", "tree_samples")
 SWEEP_CSV = ("scene", "view", "sweep", "viewpoint_depth", "direction_depth", "tolerance",
              "policy", "angle", "distance", "extrapolation", "max_error", "path_identity",
+             "mirror_newton",
              "bake_s", "bake_cpu_s",
              "cache_bytes", "tree_samples", "bake_rays", "rays_traced", "object_rays",
              "traced_fraction", "object_cpu_s", "total_cpu_s", "exact_object_cpu_s",
@@ -773,7 +801,8 @@ def sweeps_markdown(rows) -> str:
                 f"| {r['sweep']} | {r['viewpoint_depth']} | {r['direction_depth']} | "
                 f"{r['tolerance']:g} | {_fmt(r['angle'], '{:g}')} | {_fmt(r['distance'], '{:g}')} | "
                 f"{_fmt(r['extrapolation'], '{:g}')} | {_fmt(r.get('max_error'), '{:g}')}"
-                f"{' path' if r.get('path_identity') else ''} | {r['bake_s']:.1f} | "
+                f"{' path' if r.get('path_identity') else ''}"
+                f"{' newton' if r.get('mirror_newton') else ''} | {r['bake_s']:.1f} | "
                 f"{r['cache_bytes'] / 1e6:.2f} | {100 * r['traced_fraction']:.1f} | "
                 f"{r['object_cpu_s']:.2f} ({r['exact_object_cpu_s']:.2f}) | "
                 f"{r['total_cpu_s']:.2f} ({r['exact_total_cpu_s']:.2f}) | "

@@ -730,8 +730,7 @@ def refine_rule():
 
 
 def _take(s: Samples, idx) -> Samples:
-    return Samples(**{k: getattr(s, k)[idx] for k in ("out_o", "out_d", "point", "normal",
-                                                      "patch", "null", "tree")})
+    return Samples(**{k: getattr(s, k)[idx] for k in SAMPLE_FIELDS})
 
 
 def _cls(samples: Samples, ids, class_of):

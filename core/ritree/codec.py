@@ -11,6 +11,8 @@
   box [lo, hi]. Worst error per axis ``point_error_bound(lo, hi, bits)`` = (hi - lo) / (2^bits - 1)
   / 2 plus float64 rounding (a few ulps of max(|lo|, |hi|)); points outside the box are clamped
   to it and counted.
+- Normalized patch parameters in [0, 1]^2 <-> 2 x uint16 codes on a uniform grid (worst error
+  1 / (2 * 65535) per coordinate; values outside are clamped).
 Arrays of any leading shape are accepted; work is done in blocks of ``BLOCK`` rows.
 """
 
@@ -148,3 +150,20 @@ def decode_points(codes, lo, hi) -> np.ndarray:
         raise ValueError(f"codes: expected uint16 or uint32 point codes, got {codes.dtype}")
     step = (hi - lo) / _levels(bits)
     return _blockwise(lambda b: lo + b * step, codes, 3, np.float64)
+
+
+# --------------------------------------------------------------------------- patch parameters
+PARAM_LEVELS = (1 << 16) - 1
+
+
+def encode_params(uv) -> np.ndarray:
+    """(..., 2) normalized patch parameters in [0, 1] -> (..., 2) uint16 codes (clamped)."""
+    x = _last_axis(uv, 2, "parameters").astype(np.float64, copy=False)
+    if not np.isfinite(x).all():
+        raise ValueError("parameters: non-finite values cannot be encoded")
+    return np.rint(np.clip(x, 0.0, 1.0) * PARAM_LEVELS).astype(np.uint16)
+
+
+def decode_params(codes) -> np.ndarray:
+    """(..., 2) uint16 codes -> (..., 2) float64 normalized parameters."""
+    return _last_axis(codes, 2, "codes").astype(np.float64) / PARAM_LEVELS

@@ -18,7 +18,10 @@ Interpolated first-hit points and normals feed local illumination; a dielectric'
 ray and Fresnel weight come from the interpolated normal. A mirror ray whose usable samples
 all reflect once is answered as the exact tracer answers it from its hit: the query direction
 reflected about the interpolated normal (``mirror_normal``, on by default: on the teapot and
-the bowl it cuts the mean error by a fifth; the paper blends the output rays).
+the bowl it cuts the mean error by a fifth; the paper blends the output rays). With
+``mirror_newton``, where those samples share one NURBS patch, the hit and normal are the exact
+ones Newton's method finds on it from the interpolated patch parameters (trace.polish), and
+such a ray outside the tolerance is answered so too where the bake saw no path change there.
 """
 
 from __future__ import annotations
@@ -31,7 +34,8 @@ import numpy as np
 
 from ..rowops import all_last, any_last, norm3
 from ..trace.objectfn import ObjectRays, fresnel_dielectric, reflect
-from ..trace.patches import PatchHit
+from ..trace.patches import T_MIN_REL, PatchHit
+from ..trace.polish import Seeds, polish_hits
 from .extras import extra_weights
 from .interp import (BILINEAR, EXTRA, EXTRAPOLATED, FAIL, TRIANGLE, UNIT_CORNERS,
                      bilinear_weights, cell_weights, drop_outlier, drop_outlier_units, far_pairs,
@@ -39,11 +43,24 @@ from .interp import (BILINEAR, EXTRA, EXTRAPOLATED, FAIL, TRIANGLE, UNIT_CORNERS
 from .locate import Located, locate
 from .tree import BOUNDARY, PATH_CHANGE
 
-# Rays per block of the blend stage: bounds its (rays, 24, 12) float32 sample gather to 38 MB.
+# Rays per block of the blend stage: bounds its (rays, 24, 14) float32 sample gather to 44 MB.
 BLEND_BLOCK = 1 << 15
 # Interpolated unit vectors shorter than this before normalization (opposed samples) are not
 # trusted: the ray is traced.
 MIN_BLEND_NORM = 1e-3
+# How a mirror ray is answered (QueryOptions.mirror_normal, mirror_newton; --mirror-rays): the
+# blended output ray (the paper);
+# the query direction reflected about the interpolated normal at the interpolated hit, for
+# units whose usable samples all reflect once; and, where those samples also share one NURBS
+# patch, reflected at the exact hit that Newton finds from the interpolated patch parameters.
+MIRROR_BLEND, MIRROR_NORMAL, MIRROR_NEWTON = 0, 1, 2
+# The Newton hit is kept only near the interpolated one: within this distance (relative to the
+# object's box diagonal; interpolated hits where the tolerance answers are ~1e-4 off) and with
+# a normal within this angle of the interpolated normal (a grazing ray's second root, where it
+# leaves the surface, has a normal facing the other way); otherwise the ray keeps the
+# interpolated normal's answer.
+NEWTON_MAX_MOVE_REL = 1e-2
+NEWTON_MAX_TURN_DEG = 10.0
 
 # Answer codes: how each ray was answered.
 # FULL..EXTRAPOLATED_S interpolate an output ray; NULL_S answers the null ray (trapped: every
@@ -97,6 +114,9 @@ class QueryOptions:
                                        # reflect once leaves along the query direction reflected
                                        # about the interpolated normal, from the interpolated
                                        # hit point; False: the interpolated output ray (paper)
+    mirror_newton: bool = False        # with mirror_normal, where those samples share one NURBS
+                                       # patch: the hit and normal are the exact ones Newton
+                                       # finds from the interpolated patch parameters
 
     def validate(self) -> "QueryOptions":
         if self.policy not in ("ri", "raytree"):
@@ -107,6 +127,9 @@ class QueryOptions:
         if self.threshold_leaves not in ("unverified", "all"):
             raise ValueError("threshold_leaves must be 'unverified' or 'all', "
                              f"got {self.threshold_leaves!r}")
+        if self.mirror_newton and not self.mirror_normal:
+            raise ValueError("mirror_newton needs mirror_normal (the exact hit replaces the "
+                             "interpolated one of the normal rule)")
         for name in ("extrapolation", "angle_deg", "distance", "max_error_deg",
                      "fallback_angle_deg"):
             val = getattr(self, name)
@@ -116,18 +139,25 @@ class QueryOptions:
 
 
 class StageClock:
-    """CPU seconds (this process's CPU clock) spent per named stage of a query."""
+    """CPU seconds (this process's CPU clock) spent per named stage of a query. A stage run
+    inside another is that stage's time only, not the outer one's."""
 
     def __init__(self):
         self.cpu: dict[str, float] = {}
+        self._inner: list[float] = []      # per open stage: the time of stages run inside it
 
     @contextmanager
     def __call__(self, name: str):
         t0 = time.process_time()
+        self._inner.append(0.0)
         try:
             yield
         finally:
-            self.cpu[name] = self.cpu.get(name, 0.0) + time.process_time() - t0
+            spent = time.process_time() - t0
+            inner = self._inner.pop()
+            self.cpu[name] = self.cpu.get(name, 0.0) + spent - inner
+            if self._inner:
+                self._inner[-1] += spent
 
 
 class KnownHits:
@@ -163,8 +193,9 @@ class KnownHits:
         return (k, self._all().take(p[k])) if len(k) else None
 
 
-# Stages whose time is exact tracing the query calls (the rest is the query's own work).
-TRACING_STAGES = ("first_hits", "trace")
+# Stages whose time is exact tracing the query calls (the rest is the query's own work):
+# "newton" is the tracer's Newton step on known patches (mirror_newton).
+TRACING_STAGES = ("first_hits", "trace", "newton")
 
 
 def group_rows(keys: np.ndarray):
@@ -194,10 +225,10 @@ def group_rows(keys: np.ndarray):
 
 
 def blend(vals, rows, w) -> np.ndarray:
-    """Weighted sums ``w`` (n, K) of the items ``vals[rows]`` (rows (n,) into vals (G, K, 12))
-    -> (n, 12) float64, in blocks of BLEND_BLOCK rays (float32 gather and sums)."""
+    """Weighted sums ``w`` (n, K) of the items ``vals[rows]`` (rows (n,) into vals (G, K, C))
+    -> (n, C) float64, in blocks of BLEND_BLOCK rays (float32 gather and sums)."""
     n = len(rows)
-    out = np.empty((n, 12))
+    out = np.empty((n, vals.shape[-1]))
     for a in range(0, n, BLEND_BLOCK):
         b = min(a + BLEND_BLOCK, n)
         out[a:b] = np.matmul(w[a:b, None, :].astype(np.float32, copy=False),
@@ -225,8 +256,8 @@ class SetItems:
     weight), so one weighted sum blends every column."""
 
     ids: np.ndarray          # (S, 32) sample ids
-    corner_vals: np.ndarray  # (S, 16, 12) float32: items 0-15
-    extra_vals: np.ndarray   # (S, 16, 12) float32: items 16-31
+    corner_vals: np.ndarray  # (S, 16, 14) float32: items 0-15
+    extra_vals: np.ndarray   # (S, 16, 14) float32: items 16-31
     has_extra: np.ndarray    # (S, 4) the leaf stores extras
 
     @classmethod
@@ -243,7 +274,7 @@ class SetItems:
                    extra_vals=vals[ex_ids], has_extra=has)
 
     def item_vals(self, sets, item) -> np.ndarray:
-        """Values (..., 12) of items ``item`` (0-31) of sets ``sets`` (broadcast together)."""
+        """Values (..., 14) of items ``item`` (0-31) of sets ``sets`` (broadcast together)."""
         c = self.corner_vals[sets, np.minimum(item, 15)]
         e = self.extra_vals[sets, np.maximum(item - 16, 0)]
         return np.where((item < 16)[..., None], c, e)
@@ -284,7 +315,11 @@ class TreeQuery:
         d = np.asarray(d, np.float64)
         n = len(o)
         tmax = np.full(n, np.inf) if tmax is None else np.asarray(tmax, np.float64)
-        clock = StageClock()
+        clock = self._clock = StageClock()
+        known = self._known = KnownHits(n)
+        self._exact_mirror_hits = 0   # per-call state (a TreeQuery answers one call at a time)
+        self._must = np.zeros(n, bool)     # rays only Newton's hit may answer (_within_tolerance)
+        self._newton_ok = np.zeros(n, bool)
         ans = np.full(n, MISS, np.int8)
         why = np.zeros(n, np.int8)
         res = _empty_result(n, o, d)
@@ -292,19 +327,22 @@ class TreeQuery:
             loc, outside = locate(self.tree, o, d, tmax)
         ans[outside] = OUTSIDE
         n_exact = 0
-        known = KnownHits(n)
         if len(loc):
             if self.opt.policy == "raytree":
                 self._raytree(o, d, tmax, loc, res, ans, why, clock)
             else:
                 n_exact = self._ri(o, d, tmax, loc, res, ans, why, clock, known)
+        # a ray past the tolerance that Newton did not answer is traced
+        lost = np.flatnonzero(self._must & ~self._newton_ok & (ans != TRACED))
+        ans[lost] = TRACED
+        why[lost] = WHY_TOLERANCE
         with clock("trace"):
             tr = np.flatnonzero((ans == TRACED) | (ans == OUTSIDE))
             if len(tr):
                 ex = self.st.object_function(o[tr], d[tr], tmax[tr], first=known.of(tr))
                 for k, val in ex.__dict__.items():
                     getattr(res, k)[tr] = val
-        stats = {"exact_first_hits": n_exact,
+        stats = {"exact_first_hits": n_exact, "exact_mirror_hits": self._exact_mirror_hits,
                  **{f"query_{k}_cpu_s": v for k, v in clock.cpu.items()}}
         return res, ans, why, stats
 
@@ -341,7 +379,7 @@ class TreeQuery:
             with clock("first_hits"):
                 self._check_misses(o, d, tmax, loc, np.flatnonzero(pc == -1), set_of, s_leaf,
                                    ans, why, known)
-            go = self._within_tolerance(loc, go, set_of, s_leaf, ans, why)
+            go = self._within_tolerance(loc, go, set_of, s_leaf, ans, why, known)
         if opt.path_identity:
             go = self._same_path(loc, go, set_of, pc, s_ids, s_leaf, ans, why)
         if len(go) == 0:
@@ -363,10 +401,26 @@ class TreeQuery:
             u_set, u_pc = set_of[ufirst], pc[ufirst]
             u_ok = (tab.cls[items.ids[u_set]] == u_pc[:, None]) & ~tab.null[items.ids[u_set]]
             u_ok[:, 16:] &= np.repeat(items.has_extra[u_set], 4, axis=1)      # (U, 32) usable
-            # units whose usable samples all reflect once: answered from the normal
-            u_once = None
+            # units whose usable samples all reflect once: answered from the normal (and,
+            # where they share one patch, from Newton's hit on it)
+            u_mirror = None
             if opt.mirror_normal and self.material.kind == "mirror":
-                u_once = np.all(tab.once[items.ids[u_set]] | ~u_ok, axis=1)
+                once = np.all(tab.once[items.ids[u_set]] | ~u_ok, axis=1)
+                u_mirror = np.where(once, MIRROR_NORMAL, MIRROR_BLEND).astype(np.int8)
+                if opt.mirror_newton:
+                    pid = tab.patch[items.ids[u_set]]
+                    top = np.where(u_ok, pid, -1).max(axis=1)
+                    one = (top == np.where(u_ok, pid, np.iinfo(np.int32).max).min(axis=1)) \
+                        & (self.st.tracer.piece_base[np.maximum(top, 0)] >= 0)   # one NURBS patch
+                    u_mirror[once & one] = MIRROR_NEWTON
+                # rays past the tolerance that Newton cannot answer are traced
+                lost = self._must[loc.ray[go]] & (u_mirror[unit_of] != MIRROR_NEWTON)
+                if lost.any():
+                    ans[loc.ray[go[lost]]] = TRACED
+                    why[loc.ray[go[lost]]] = WHY_TOLERANCE
+                    k = ~lost
+                    go, set_of, pc, unit_of = go[k], set_of[k], pc[k], unit_of[k]
+                    m = len(go)
             # the DQs whose samples the thresholds compare: all, or those the bake could not
             # verify (split to the maximum depth: a shallower leaf's midpoint matched)
             u_checked = np.ones((len(u_set), 4), bool)
@@ -391,7 +445,7 @@ class TreeQuery:
                 with clock("blend"):
                     self._blend_bilinear(loc.take(go[e]), items, set_of[e], pc[e], o, d, tmax,
                                          res, ans, why,
-                                         None if u_once is None else u_once[unit_of[e]])
+                                         None if u_mirror is None else u_mirror[unit_of[e]])
                 go, set_of, pc, unit_of = go[h], set_of[h], pc[h], unit_of[h]
                 m = len(go)
         with clock("weights"):
@@ -464,7 +518,8 @@ class TreeQuery:
             self._fill(res, ans, rows[g], o, d, tmax, out[gc, 0:3], od[gc] / lod[gc, None],
                        out[gc, 6:9], nm[gc] / lnm[gc, None], pc[g],
                        tab.patch[items.ids[set_of[g], best[gc]]].astype(np.int64),
-                       once=None if u_once is None else u_once[unit_of[g]])
+                       mirror=None if u_mirror is None else u_mirror[unit_of[g]],
+                       uv=(out[gc, 12:14], tab.vals[items.ids[set_of[g], best[gc]], 12:14]))
             if opt.null_interp:
                 # units holding a null sample of their class: their failed rays may be null
                 u_null = np.any(tab.null[s_ids[u_set]] & (s_cls[u_set] == u_pc[:, None]), axis=1)
@@ -473,12 +528,12 @@ class TreeQuery:
                     self._null(loc.take(r), s_ids[set_of[r]], pc[r], o, d, tmax, res, ans, why)
         return len(two)
 
-    def _blend_bilinear(self, loc, items, set_of, pc, o, d, tmax, res, ans, why, once=None):
+    def _blend_bilinear(self, loc, items, set_of, pc, o, d, tmax, res, ans, why, mirror=None):
         """Rays ``loc`` (of sets ``set_of``, classes ``pc``) whose 16 corners are all usable:
         bilinear weights at both levels, one blend (the general path's answers, without its
         per-ray rules; the weights are formed in float32, the blend's precision, so the
         representative patch of two weights equal to float32 rounding may be the other's).
-        ``once``: rays answered from the normal (see ``_fill``)."""
+        ``mirror``: how mirror rays are answered (MIRROR_*, see ``_fill``)."""
         W = bilinear_weights(loc.alpha, loc.beta)                            # (n, 4)
         # W_k times DQ k's bilinear weights, float32 (the blend's precision)
         wr = np.empty((len(loc), 4, 4), np.float32)
@@ -498,13 +553,14 @@ class TreeQuery:
         self._fill(res, ans, rows[g], o, d, tmax, out[g, 0:3], od[g] / lod[g, None],
                    out[g, 6:9], nm[g] / lnm[g, None], pc[g],
                    self.table.patch[items.ids[set_of[g], best[g]]].astype(np.int64),
-                   once=None if once is None else once[g])
+                   mirror=None if mirror is None else mirror[g],
+                   uv=(out[g, 12:14], self.table.vals[items.ids[set_of[g], best[g]], 12:14]))
 
     def _blend(self, items, set_of, cand, W, w, item, is_extra):
         """Blend rays ``cand`` (of sets ``set_of``) with viewpoint weights W (m, 4) and per-DQ
         slot weights w (m, 4, 6) over items ``item`` (m, 4, 6); rays without extras blend their
-        16 corners only. Returns (values (c, 12), the heaviest item of each ray (c,))."""
-        out = np.empty((len(cand), 12))
+        16 corners only. Returns (values (c, 14), the heaviest item of each ray (c,))."""
+        out = np.empty((len(cand), items.corner_vals.shape[-1]))
         best = np.empty(len(cand), np.int64)
         ex = is_extra[cand].any(axis=1)
         k = np.flatnonzero(~ex)
@@ -523,13 +579,29 @@ class TreeQuery:
             best[k] = np.argmax(np.abs(wr), axis=1)
         return out, best
 
-    def _within_tolerance(self, loc, go, set_of, s_leaf, ans, why):
+    def _within_tolerance(self, loc, go, set_of, s_leaf, ans, why, known):
         """Of the located rays ``go``, those whose four leaves (decided once per set) and
         viewpoint cell the bake measured within ``max_error_deg`` (an unmeasured NaN is not);
-        the others are traced (WHY_TOLERANCE)."""
-        tol = self.opt.max_error_deg
-        s_ok = np.all(self.tree.dir_err[s_leaf] <= tol, axis=1)
-        ok = s_ok[set_of[go]] & (self.tree.vp_err[loc.vnode[go]] <= tol)
+        the others are traced (WHY_TOLERANCE). With ``mirror_newton``, a mirror ray outside
+        the tolerance whose leaves and cell the bake did not see change path goes on as one
+        that only an exact hit may answer (``_must``): the bake's errors are the blend's, which
+        that hit replaces. Where the object's outline crosses them (BOUNDARY), only if the ray's
+        exact first hit is known (a two-class ray): hit or miss is then not a guess. A leaf or
+        cell the bake did not measure (NaN) or saw answered wrongly (inf) proves nothing: the
+        ray is traced."""
+        tol, tree = self.opt.max_error_deg, self.tree
+        s_ok = np.all(tree.dir_err[s_leaf] <= tol, axis=1)
+        ok = s_ok[set_of[go]] & (tree.vp_err[loc.vnode[go]] <= tol)
+        if self.opt.mirror_newton and self.opt.mirror_normal and self.material.kind == "mirror":
+            flags = np.bitwise_or.reduce(tree.dir_flags[s_leaf], axis=1)[set_of[go]] \
+                | tree.vp_flags[loc.vnode[go]]
+            exact = known.pos[loc.ray[go]] >= 0
+            measured = np.all(np.isfinite(tree.dir_err[s_leaf]), axis=1)[set_of[go]] \
+                & np.isfinite(tree.vp_err[loc.vnode[go]])
+            calm = ~ok & measured & (flags & PATH_CHANGE == 0) \
+                & ((flags & BOUNDARY == 0) | exact)
+            self._must[loc.ray[go[calm]]] = True
+            ok |= calm
         bad = loc.ray[go[~ok]]
         ans[bad] = TRACED
         why[bad] = WHY_TOLERANCE
@@ -731,12 +803,42 @@ class TreeQuery:
         best = np.argmax(np.abs(weights), axis=1)
         return self.table.patch[ids[np.arange(len(ids)), best]].astype(np.int64)
 
+    def _exact_hits(self, rows, o, d, tmax, seeds: Seeds) -> PatchHit:
+        """Exact hits of rays ``rows`` (directions ``d``) on their seeds' patches near the
+        seeds (NEWTON_MAX_MOVE_REL, NEWTON_MAX_TURN_DEG): where the query found the ray's
+        exact first hit already, that hit if it is on the seed's patch (none if on another),
+        else Newton's from the seeds."""
+        lim = NEWTON_MAX_MOVE_REL * self.tree.diag, np.cos(np.radians(NEWTON_MAX_TURN_DEG))
+        h = PatchHit(hit=np.zeros(len(rows), bool), t=np.full(len(rows), np.inf),
+                     point=np.zeros((len(rows), 3)), normal=np.zeros((len(rows), 3)),
+                     patch=np.full(len(rows), -1, np.int64), cls=np.full(len(rows), -1, np.int64),
+                     u=np.zeros(len(rows)), v=np.zeros(len(rows)))
+        got = self._known.of(rows)
+        rest = np.ones(len(rows), bool)
+        if got is not None:
+            k, kh = got
+            rest[k] = False
+            same = kh.hit & (kh.patch == seeds.patch[k])
+            h.put(k[same], kh.take(np.flatnonzero(same)))
+            _keep_near(h, d, seeds, *lim)
+        r = np.flatnonzero(rest)
+        if len(r):
+            sub = Seeds(*(None if x is None else x[r] for x in
+                          (seeds.patch, seeds.uvn, seeds.point, seeds.normal, seeds.alt_uvn)))
+            floor = T_MIN_REL * self.st.tracer.diag
+            h.put(r, polish_hits(self.st.tracer, o[rows[r]], d[r], sub, *lim,
+                                 np.full(len(r), floor), tmax[rows[r]]))
+        return h
+
     def _fill(self, res, ans, rows, o, d, tmax, oo, od, pt, nm, cls, patch, null=False,
-              once=None):
+              mirror=None, uv=None):
         """Write interpolated answers (output ray oo, od; first hit pt, unit normal nm) into
-        ``res``. ``once`` (bool per row): rays of a mirror whose samples all reflect once,
+        ``res``. ``mirror`` (MIRROR_* per row): mirror rays whose samples all reflect once are
         answered as the tracer answers such a ray from its hit - leaving from pt along the
-        query direction reflected about nm - instead of by the blended output ray."""
+        query direction reflected about nm - instead of by the blended output ray; with
+        MIRROR_NEWTON the hit and normal are first replaced by exact ones on ``patch``
+        (``_exact_hits``, where kept); ``uv``: (the interpolated normalized parameters, those
+        of the heaviest sample) to start Newton from."""
         dd = d[rows]
         t_first = np.einsum("ij,ij->i", pt - o[rows], dd)
         # the environment is in front of the interpolated hit: the object is not seen
@@ -746,12 +848,29 @@ class TreeQuery:
             k = ~hidden
             rows, oo, od, pt, nm, cls, patch, dd, t_first = (
                 a[k] for a in (rows, oo, od, pt, nm, cls, patch, dd, t_first))
-            once = None if once is None else once[k]
+            mirror = None if mirror is None else mirror[k]
+            uv = None if uv is None else (uv[0][k], uv[1][k])
         flip = np.einsum("ij,ij->i", nm, dd) > 0
         nm = np.where(flip[:, None], -nm, nm)
-        if once is not None and once.any():
-            od = np.where(once[:, None], reflect(dd, nm), od)
-            oo = np.where(once[:, None], pt, oo)
+        if mirror is not None and mirror.any():
+            newton = np.flatnonzero(mirror == MIRROR_NEWTON)
+            if len(newton):
+                pt, nm, t_first = pt.copy(), nm.copy(), t_first.copy()
+                with self._clock("newton"):
+                    h = self._exact_hits(rows[newton], o, dd[newton], tmax,
+                                         Seeds(patch[newton], uv[0][newton], pt[newton],
+                                               nm[newton], uv[1][newton]))
+                k = newton[h.hit]
+                n_new = h.normal[h.hit]
+                pt[k], t_first[k] = h.point[h.hit], h.t[h.hit]
+                nm[k] = np.where((np.einsum("ij,ij->i", n_new, dd[k]) > 0)[:, None], -n_new, n_new)
+                self._exact_mirror_hits += len(k)
+                self._newton_ok[rows[k]] = True
+                res.uv[rows[k]] = self.st.tracer.normalized_uv(h.patch[h.hit], h.u[h.hit],
+                                                               h.v[h.hit])
+            m = mirror != MIRROR_BLEND
+            od = np.where(m[:, None], reflect(dd, nm), od)
+            oo = np.where(m[:, None], pt, oo)
         res.hit[rows] = True
         res.null[rows] = null
         res.out_origin[rows] = oo
@@ -767,6 +886,18 @@ class TreeQuery:
             res.refl_dir[rows] = reflect(dd, nm)
 
 
+def _keep_near(h: PatchHit, d, seeds: Seeds, max_move: float, min_cos: float) -> None:
+    """Drop (in place) the hits of ``h`` farther than ``max_move`` from the seeds' points or
+    whose normal, turned to face the rays ``d``, makes a cosine below ``min_cos`` with the
+    seeds' normals."""
+    k = np.flatnonzero(h.hit)
+    nk = h.normal[k]
+    facing = np.einsum("ij,ij->i", np.where((np.einsum("ij,ij->i", nk, d[k]) > 0)[:, None],
+                                            -nk, nk), seeds.normal[k])
+    far = (facing < min_cos) | (np.linalg.norm(h.point[k] - seeds.point[k], axis=1) > max_move)
+    h.hit[k[far]] = False
+
+
 def _empty_result(n, o, d) -> ObjectRays:
     """Misses for every ray (output = input ray), to be filled in by the stages."""
     return ObjectRays(hit=np.zeros(n, bool), null=np.zeros(n, bool), out_origin=o.copy(),
@@ -774,4 +905,4 @@ def _empty_result(n, o, d) -> ObjectRays:
                       normal=np.zeros((n, 3)), patch=np.full(n, -1, np.int64),
                       cls=np.full(n, -1, np.int64), events=np.zeros(n, np.int64),
                       refl_dir=np.zeros((n, 3)), fresnel=np.zeros(n),
-                      tree=np.zeros(n, np.uint32))
+                      tree=np.zeros(n, np.uint32), uv=np.zeros((n, 2)))

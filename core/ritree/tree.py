@@ -18,16 +18,19 @@ import numpy as np
 
 from ..trace.objectfn import one_reflection_hash
 from .cache import TreeCacheError, fingerprint, load_tree, save_tree
-from .codec import decode_points, decode_unit_vectors, encode_points, encode_unit_vectors
+from .codec import (decode_params, decode_points, decode_unit_vectors, encode_params, encode_points,
+                    encode_unit_vectors)
 from .quadtree import CORNERS, DenseLocator, Forest
 
-SAMPLE_FIELDS = ("out_o", "out_d", "point", "normal", "patch", "null", "tree")
+SAMPLE_FIELDS = ("out_o", "out_d", "point", "normal", "patch", "null", "tree", "uv")
 # Version of the tree's array layout inside a .rit file (the file format has its own version):
 # a reader refuses other layouts with a message to re-bake. 2: the bake's measured errors and
 # flags per direction node and viewpoint node (dir_err, dir_flags, vp_err, vp_flags). 3: what
 # follows from the rest is not stored (levels, cell indices and inner corners of the forests,
-# the outputs of samples that miss the object), small ranges in small dtypes.
-TREE_LAYOUT = 3
+# the outputs of samples that miss the object), small ranges in small dtypes. 4: each hit
+# sample's normalized first-hit patch parameters (s.uv_q), the seeds of the mirror query's
+# Newton step.
+TREE_LAYOUT = 4
 # Extra samples' cell-local positions are stored as uint16 multiples of 1 / EX_POS_SCALE where
 # that is exact (the bake's edge search lands on binary fractions: search_steps <= 15), else
 # as float32.
@@ -80,7 +83,8 @@ class BakeParams:
 
 @dataclass
 class Samples:
-    """Ray samples (S of them); float32 geometry, int32 patch ids."""
+    """Ray samples (S of them); float32 geometry, int32 patch ids; ``uv`` (S, 2) float32 the
+    first hit's normalized patch parameters (ObjectRays.uv)."""
 
     out_o: np.ndarray
     out_d: np.ndarray
@@ -89,12 +93,17 @@ class Samples:
     patch: np.ndarray
     null: np.ndarray
     tree: np.ndarray
+    uv: np.ndarray | None = None      # None: zeros (hand-made samples without patch parameters)
+
+    def __post_init__(self):
+        if self.uv is None:
+            self.uv = np.zeros((len(self.patch), 2), np.float32)
 
     @classmethod
     def empty(cls) -> "Samples":
         z3 = np.zeros((0, 3), np.float32)
         return cls(z3, z3.copy(), z3.copy(), z3.copy(), np.zeros(0, np.int32),
-                   np.zeros(0, bool), np.zeros(0, np.uint32))
+                   np.zeros(0, bool), np.zeros(0, np.uint32), np.zeros((0, 2), np.float32))
 
     @classmethod
     def from_rays(cls, res) -> "Samples":
@@ -102,7 +111,8 @@ class Samples:
         return cls(res.out_o.astype(np.float32) if hasattr(res, "out_o") else
                    res.out_origin.astype(np.float32), res.out_dir.astype(np.float32),
                    res.point.astype(np.float32), res.normal.astype(np.float32),
-                   res.patch.astype(np.int32), res.null.astype(bool), res.tree.astype(np.uint32))
+                   res.patch.astype(np.int32), res.null.astype(bool), res.tree.astype(np.uint32),
+                   res.uv.astype(np.float32))
 
     def __len__(self) -> int:
         return len(self.patch)
@@ -115,11 +125,12 @@ class Samples:
     def packed(self, lo, hi) -> "PackedSamples":
         """The compact form stored in cache files: points as 16-bit codes in the box [lo, hi],
         unit vectors as 2 x int16 octahedral codes (codec's worst-case errors: box / 131070
-        per axis, 6.5e-5 rad)."""
+        per axis, 6.5e-5 rad), patch parameters as 2 x uint16 (worst 7.6e-6 of the domain)."""
         return PackedSamples(out_o_q=encode_points(self.out_o, lo, hi)[0],
                              out_d_q=encode_unit_vectors(self.out_d),
                              point_q=encode_points(self.point, lo, hi)[0],
                              normal_q=encode_unit_vectors(self.normal),
+                             uv_q=encode_params(self.uv),
                              patch=self.patch.astype(np.int16 if self.patch.max(initial=0) < 32767
                                                      else np.int32),
                              null=self.null, tree=self.tree, lo=np.asarray(lo), hi=np.asarray(hi))
@@ -142,14 +153,15 @@ class PackedSamples:
     out_d_q: np.ndarray     # (S, 2) int16 octahedral codes (zero vector reserved)
     point_q: np.ndarray
     normal_q: np.ndarray
+    uv_q: np.ndarray        # (S, 2) uint16 normalized patch parameter codes
     patch: np.ndarray       # (S,) int16/int32
     null: np.ndarray        # (S,) bool
     tree: np.ndarray        # (S,) uint32 ray-tree hash
     lo: np.ndarray
     hi: np.ndarray
 
-    FIELDS = ("out_o_q", "out_d_q", "point_q", "normal_q", "patch", "null", "tree")
-    CODES = FIELDS[:4]          # the output codes (stored for hits only)
+    FIELDS = ("out_o_q", "out_d_q", "point_q", "normal_q", "uv_q", "patch", "null", "tree")
+    CODES = FIELDS[:5]          # the output codes (stored for hits only)
     STORED = ("patch", "null_bits", "tree_table", "tree_code") + CODES
 
     def __len__(self) -> int:
@@ -170,6 +182,10 @@ class PackedSamples:
     @property
     def normal(self) -> np.ndarray:
         return decode_unit_vectors(self.normal_q)
+
+    @property
+    def uv(self) -> np.ndarray:
+        return decode_params(self.uv_q)
 
     def stored(self) -> dict[str, np.ndarray]:
         """The cache file's sample arrays: the codes of the samples that hit the object only
@@ -217,11 +233,12 @@ class PackedSamples:
 
 @dataclass
 class SampleTable:
-    """Every sample decoded once, for rendering. ``vals`` (S, 12) float32 holds out_o, out_d,
+    """Every sample decoded once, for rendering. ``vals`` (S, 14) float32 holds out_o, out_d,
     point, normal (float32 keeps interpolation within 1e-7 rad of float64: far below the cache's
-    6.5e-5 rad octahedral quantization); ``cls`` the sample's class (-1: misses the object)."""
+    6.5e-5 rad octahedral quantization) and the first hit's normalized patch parameters uv
+    (columns 12-13); ``cls`` the sample's class (-1: misses the object)."""
 
-    vals: np.ndarray        # (S, 12) float32
+    vals: np.ndarray        # (S, 14) float32
     cls: np.ndarray         # (S,) int32
     null: np.ndarray        # (S,) bool
     patch: np.ndarray       # (S,) int32
@@ -231,9 +248,10 @@ class SampleTable:
 
     @classmethod
     def of(cls, samples, class_of) -> "SampleTable":
-        vals = np.empty((len(samples), 12), np.float32)
+        vals = np.empty((len(samples), 14), np.float32)
         for c, k in enumerate(("out_o", "out_d", "point", "normal")):
             vals[:, 3 * c:3 * c + 3] = getattr(samples, k)
+        vals[:, 12:14] = samples.uv
         patch = np.asarray(samples.patch, np.int32)
         klass = np.where(patch >= 0, np.asarray(class_of)[np.maximum(patch, 0)], -1)
         null = np.asarray(samples.null, bool)
@@ -285,14 +303,14 @@ class RITree:
 
     @cached_property
     def blend_vals(self) -> np.ndarray:
-        """(S, 12) float32: ``table.vals`` with each output direction multiplied by its
+        """(S, 14) float32: ``table.vals`` with each output direction multiplied by its
         sample's perspective weight |(1, u, v)| (Forest.cube_scale at the sample's point of the
         direction cube), so that one weighted sum of these rows blends every column and the
         blended direction is perspective-correct. The weight depends only on the sample's
         input direction, so it is computed once per sample: from the corners of every
         direction node and from the extras' cell-local positions. A second table beside
-        ``table.vals`` (whose unit directions the pairwise thresholds compare): 48 bytes a
-        sample, 150 MB on a 3.2 M-sample full tree."""
+        ``table.vals`` (whose unit directions the pairwise thresholds compare): 56 bytes a
+        sample, 178 MB on a 3.2 M-sample full tree."""
         f, n = self.dir_forest, len(self.samples)
         scale = np.ones(n)
         tree = f.tree_of_nodes()
@@ -360,7 +378,7 @@ class RITree:
         return np.where(p >= 0, self.class_of[np.maximum(p, 0)], -1)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The tree as the cache file's named arrays (layout 3, docs/tree-format.md)."""
+        """The tree as the cache file's named arrays (layout 4, docs/tree-format.md)."""
         out = {"box_lo": self.box_lo, "box_hi": self.box_hi, "class_of": self.class_of,
                "vp_pos": self.vp_pos, "vp_face": self.vp_face, "dir_rect": self.dir_rect,
                "ex_node": _ids(self.ex_node), "ex_kind": self.ex_kind.astype(np.int8),

@@ -51,7 +51,10 @@ class ObjectRays:
     """f's outputs for N input rays. Miss: ``hit`` False, output = input ray, patch/cls -1.
     Null: ``null`` True, ``out_dir`` zero. ``normal`` is the unit first-hit normal flipped to
     face the incoming ray. ``refl_dir``/``fresnel`` are set only for dielectric objects
-    (zero / 0 otherwise). ``t_first`` is the distance to the first hit (inf on a miss)."""
+    (zero / 0 otherwise). ``t_first`` is the distance to the first hit (inf on a miss);
+    ``uv`` its patch parameters normalized to the patch's domain [0, 1]^2 (barycentric on a
+    mesh patch; zero on a miss, and where an RI-Tree interpolated the hit instead of finding
+    it exactly)."""
 
     hit: np.ndarray
     null: np.ndarray
@@ -66,6 +69,7 @@ class ObjectRays:
     refl_dir: np.ndarray
     fresnel: np.ndarray
     tree: np.ndarray
+    uv: np.ndarray
 
     def take(self, idx) -> "ObjectRays":
         """The rows ``idx`` of every array."""
@@ -131,7 +135,8 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
                      out_dir=d.copy(), t_first=first.t.copy(), point=first.point.copy(),
                      normal=first.normal.copy(), patch=first.patch.copy(), cls=first.cls.copy(),
                      events=np.zeros(n, np.int64), refl_dir=np.zeros((n, 3)), fresnel=np.zeros(n),
-                     tree=np.zeros(n, np.uint32))
+                     tree=np.zeros(n, np.uint32),
+                     uv=tracer.normalized_uv(first.patch, first.u, first.v))
     flip = np.einsum("ij,ij->i", res.normal, d) > 0.0
     res.normal[flip] *= -1.0
 

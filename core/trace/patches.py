@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import bezier as bz
+from ..geometry.nurbs import evaluate as nurbs_evaluate
 from ..geometry.nurbs import normals as nurbs_normals
 from ..scene.model import Mesh, SpecularObject
 from .boxes import slab_intervals
@@ -76,6 +77,10 @@ NEWTON_BLOCK = 4096
 # Pairs solved per batch: bounds memory (a degree-5 pair gathers 36 x 4 float64 control values)
 # and keeps a batch's arrays small (exact renders ran ~5 % faster than with 1 << 16).
 PAIR_CHUNK = 1 << 14
+# A patch is closed in u (v) where its two u (v) edges coincide within this distance, relative to
+# the object's diagonal, at CLOSED_PROBES points along them.
+CLOSED_TOL_REL = 1e-9
+CLOSED_PROBES = 9
 # Angular slack (rad) of the end-on hull test: a line within rounding of the hull's boundary
 # (or through a control point, angle of a zero vector) counts as meeting it.
 HULL_GAP_SLACK = 1e-9
@@ -138,7 +143,15 @@ class PatchTracer:
         self.hi = allp.max(axis=0)
         self.diag = float(np.linalg.norm(self.hi - self.lo)) or 1.0
         self.class_of = np.array([p.class_id for p in obj.patches], dtype=np.int64)
+        # each patch's parameter domain (u0, u1, v0, v1): NURBS knot range, [0, 1]^2 for a
+        # mesh patch (barycentric); PatchHit (u, v) divided by it is the normalized parameter
+        self.uv_domain = np.tile(np.array([0.0, 1.0, 0.0, 1.0]), (len(obj.patches), 1))
+        self.pieces: dict[int, bz.BezierPieces] = {}    # each NURBS patch's Bezier pieces
+        # (P, 2): the patch is closed in u / in v (its two edges coincide: a surface of
+        # revolution's seam), so parameters wrap around
+        self.closed = np.zeros((len(obj.patches), 2), bool)
         self._build_nurbs(obj)
+        self._stack_pieces()
         self._build_meshes(obj)
         self.stats = {"pairs": 0, "newton_iters": 0, "fallback_pairs": 0}
 
@@ -150,6 +163,10 @@ class PatchTracer:
             if patch.surface is None:
                 continue
             pieces = bz.extract_bezier(patch.surface)
+            self.pieces[pid] = pieces
+            self.uv_domain[pid] = (pieces.u0.min(), pieces.u1.max(), pieces.v0.min(),
+                                   pieces.v1.max())
+            self.closed[pid] = _closed(patch.surface, self.uv_domain[pid], CLOSED_TOL_REL * self.diag)
             sub = bz.subdivide_flat(pieces, flat_tol)
             pi = sub.piece
             du = pieces.u1[pi] - pieces.u0[pi]
@@ -178,6 +195,31 @@ class PatchTracer:
             self.bvh = None
         self.n_subpatches = int(sum(len(g.patch) for g in self.groups))
 
+    def _stack_pieces(self):
+        """All patches' Bezier pieces in one index space (``piece_base[patch]`` + the patch's
+        own piece index): their parameter rectangles and patches, and their nets stacked per degree
+        (``piece_nets[piece_group[k]][piece_local[k]]``), for Newton runs on known pieces."""
+        self.piece_base = np.full(len(self.object.patches), -1, np.int64)
+        rect, group, local, owner, nets, degrees = [], [], [], [], [], {}
+        base = 0
+        for pid, pcs in self.pieces.items():
+            g = degrees.setdefault((pcs.degree_u, pcs.degree_v), len(degrees))
+            if g == len(nets):
+                nets.append([])
+            start = sum(len(x) for x in nets[g])
+            nets[g].append(pcs.ctrl)
+            self.piece_base[pid] = base
+            base += len(pcs.ctrl)
+            rect.append(np.stack([pcs.u0, pcs.u1, pcs.v0, pcs.v1], axis=1))
+            group.append(np.full(len(pcs.ctrl), g))
+            local.append(start + np.arange(len(pcs.ctrl)))
+            owner.append(np.full(len(pcs.ctrl), pid))
+        self.piece_rect = np.concatenate(rect) if rect else np.zeros((0, 4))
+        self.piece_group = np.concatenate(group) if group else np.zeros(0, np.int64)
+        self.piece_local = np.concatenate(local) if local else np.zeros(0, np.int64)
+        self.piece_patch = np.concatenate(owner) if owner else np.zeros(0, np.int64)
+        self.piece_nets = [np.concatenate(x) for x in nets]
+
     def _build_meshes(self, obj):
         meshes, ids = [], []
         for pid, patch in enumerate(obj.patches):
@@ -187,6 +229,15 @@ class PatchTracer:
                 ids.append(pid)
         self.mesh_patch = np.array(ids, dtype=np.int64)
         self.meshes = MeshSet(meshes) if meshes else None
+
+    def normalized_uv(self, patch, u, v) -> np.ndarray:
+        """(N, 2) hit parameters (u, v) of patches ``patch`` (-1: a miss, 0 there) divided into
+        [0, 1]^2 by each patch's domain."""
+        dom = self.uv_domain[np.maximum(patch, 0)]
+        out = np.stack([(u - dom[:, 0]) / np.maximum(dom[:, 1] - dom[:, 0], 1e-300),
+                        (v - dom[:, 2]) / np.maximum(dom[:, 3] - dom[:, 2], 1e-300)], axis=1)
+        out[patch < 0] = 0.0
+        return out
 
     # ------------------------------------------------------------------ query
     def intersect(self, origins, dirs, tmin=None, tmax=None, patches=None) -> PatchHit:
@@ -470,6 +521,21 @@ class PatchTracer:
 
 
 # ---------------------------------------------------------------------- helpers
+def _closed(surf, dom, tol) -> tuple[bool, bool]:
+    """Whether NURBS ``surf`` (domain ``dom`` = u0, u1, v0, v1) is closed in u and in v."""
+    x = np.linspace(0.0, 1.0, CLOSED_PROBES)
+    out = []
+    for edge in ((dom[0], dom[1], dom[2] + x * (dom[3] - dom[2]), True),
+                 (dom[2], dom[3], dom[0] + x * (dom[1] - dom[0]), False)):
+        lo, hi, along, is_u = edge
+        a = np.full(CLOSED_PROBES, lo)
+        b = np.full(CLOSED_PROBES, hi)
+        p0 = nurbs_evaluate(surf, a, along, 0)[0] if is_u else nurbs_evaluate(surf, along, a, 0)[0]
+        p1 = nurbs_evaluate(surf, b, along, 0)[0] if is_u else nurbs_evaluate(surf, along, b, 0)[0]
+        out.append(bool(np.linalg.norm(p0 - p1, axis=1).max() <= tol))
+    return out[0], out[1]
+
+
 def _allowed(pid, patches):
     if patches is None:
         return np.ones(len(pid), bool)

@@ -259,9 +259,13 @@ def test_max_error_and_path_identity_trace_through_baked_tree(bl, tmp_path):
     path = render()
     p.use_path_identity = False
     assert bl.properties.query_options(obj)["mirror_normal"] is True      # core's default
+    assert bl.properties.query_options(obj)["mirror_newton"] is False     # core's default
+    p.use_mirror_newton = True
+    assert bl.properties.query_options(obj)["mirror_newton"] is True
     p.use_mirror_normal = False
     assert bl.properties.query_options(obj)["mirror_normal"] is False     # the paper's rule
-    p.use_mirror_normal = True
+    assert bl.properties.query_options(obj)["mirror_newton"] is False     # needs the normal rule
+    p.use_mirror_normal, p.use_mirror_newton = True, False
     p.use_max_error, p.max_error_deg = True, 1e-4
     assert bl.properties.query_options(obj)["max_error_deg"] == pytest.approx(1e-4)
     tight = render()

@@ -50,7 +50,7 @@ def test_bake_panel_states(bl, tmp_path):
     ui.draw_bake_panel(Layout(log), bpy.context)
     props = {x[1] for x in log if x[0] == "prop"}
     assert {"viewpoint_depth", "direction_depth", "tolerance_deg", "angle_deg", "max_error_deg",
-            "use_max_error", "use_path_identity", "use_mirror_normal",
+            "use_max_error", "use_path_identity", "use_mirror_normal", "use_mirror_newton",
             "bake_for_cameras", "use_frame_range", "cache_file"} <= props
     ops = {x[1] for x in log if x[0] == "operator"}
     assert {"riray.bake", "riray.bake_clear", "riray.bake_estimate"} <= ops

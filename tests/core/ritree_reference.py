@@ -70,6 +70,17 @@ Rules (policy "ri"; paper sections 4.1-4.3, 5.1-5.4), per ray:
     the four leaves' extra samples of its class, not null - all left the object at their
     first hit leaves from its interpolated hit point along the query direction mirrored about
     its interpolated normal.
+13. Mirror Newton hit (``mirror_newton``, with rule 12): where those usable samples also all
+    share one NURBS patch, the ray's nearest hit on that patch (the exact tracer restricted to
+    it; for a two-class ray, its exact first hit against every patch, if on that patch, else
+    none) replaces the interpolated hit point and normal - where it lies within
+    NEWTON_MAX_MOVE_REL of the box diagonal of the interpolated point and its normal, turned
+    to face the ray, within NEWTON_MAX_TURN_DEG of the interpolated one - and the ray leaves
+    from it, mirrored about its normal. With the tolerance (rule 2b), a mirror ray outside it
+    whose leaves and cell have finite measured errors and carry no PATH_CHANGE, and no BOUNDARY
+    unless it is a two-class ray (its exact first hit known), is not traced there: it is
+    answered only by this rule's exact hit - traced (tolerance) where rules 12-13 do not
+    apply or find no such hit; traced for its own reason where a later rule traces it.
 
 Policy "raytree": OUTSIDE / MISS as above; all 16 samples with the same ray-tree hash, the same
 class and none null -> bilinear at both levels (perspective-weighted) -> FULL, or MISS for the
@@ -100,6 +111,8 @@ except ImportError:                    # 3bb980a
 INSIDE_SLACK = 1e-12       # barycentric coordinates down to -this count as inside
 DEGENERATE_AREA = 1e-9     # |doubled triangle area| (cell units) at or below this: degenerate
 MIN_BLEND_NORM = 1e-3      # shorter blended direction / normal: traced
+NEWTON_MAX_MOVE_REL = 1e-2  # rule 13: farthest exact hit from the interpolated one (x diagonal)
+NEWTON_MAX_TURN_DEG = 10.0  # rule 13: largest angle of its normal to the interpolated normal
 
 # Interpolation kinds (ordered: larger = weaker answer).
 FAIL, BILINEAR, TRIANGLE, EXTRA, EXTRAPOLATED = 0, 1, 2, 3, 4
@@ -117,7 +130,8 @@ class TreeData:
         self.tree = tree
         s = tree.samples
         n = len(s)
-        self.vals = np.asarray(s.gather(np.arange(n)), np.float64)           # (S, 12)
+        self.vals = np.concatenate([np.asarray(s.gather(np.arange(n)), np.float64),
+                                    np.asarray(s.uv, np.float64)], axis=1)   # (S, 14): + uv
         self.patch = np.asarray(s.patch).astype(np.int64)
         self.null = np.asarray(s.null).astype(bool)
         self.hash = np.asarray(s.tree).astype(np.int64)
@@ -199,11 +213,11 @@ def pick_triangle(q, tris, extrapolation):
 
 
 def far_matrix(vals, used, chord, dist):
-    """Paper 5.3: K x K booleans, True for pairs of used interpolants (rows of ``vals``, 12-vectors
-    out_o, out_d, point, normal) whose output directions differ by a chord above ``chord`` or
+    """Paper 5.3: K x K booleans, True for pairs of used interpolants (rows of ``vals``: out_o,
+    out_d, point, normal, ...) whose output directions differ by a chord above ``chord`` or
     whose output origins lie more than ``dist`` apart (None: no limit), by |a - b|^2."""
-    vals = np.asarray(vals, np.float64).reshape(-1, 12)
     used = np.asarray(used, bool)
+    vals = np.asarray(vals, np.float64).reshape(len(used), -1) if len(used) else np.zeros((0, 12))
     far = np.zeros((len(vals), len(vals)), bool)
     for lo, lim in ((3, chord), (0, dist)):
         if lim is not None:
@@ -305,15 +319,21 @@ def candidates(data, cell):
     return "two", sorted({int(data.patch[s]) for s in flat if data.patch[s] >= 0})
 
 
-def finish(ans, o, d, tmax, oo, od, pt, nm, cls, info, once=None):
+def finish(ans, o, d, tmax, oo, od, pt, nm, cls, info, once=None, exact_hit=None):
     """The hidden rule and the output of an interpolated ray (rule 11); ``once`` (rule 12, None:
     not asked): the ray leaves from its first hit pt along d mirrored in the plane normal to
-    nm."""
+    nm; ``exact_hit`` (rule 13, with once): a function (pt, nm) -> the exact (point, normal)
+    replacing them, or None."""
     t_first = float(np.dot(pt - o, d))
     if t_first >= tmax:
         return Answer(MISS, 0, info={**info, "hidden": True})
     if float(np.dot(nm, d)) > 0:
         nm = -nm
+    if once and exact_hit is not None:
+        hit = exact_hit(pt, nm)
+        if hit is not None:
+            pt, nm = hit
+            info = {**info, "newton": True}
     if once:
         oo, od = pt, d - 2.0 * float(np.dot(d, nm)) * nm
     if once is not None:
@@ -334,6 +354,39 @@ def reflects_once(data, cell, pc):
             ids += [int(s) for s in data.tree.ex_ids[e]]
     return all(np.linalg.norm(data.vals[s, 0:3] - data.vals[s, 6:9]) <= 1e-9 * data.diag
                for s in ids if data.cls[s] == pc and not data.null[s])
+
+
+def one_patch(data, cell, pc):
+    """Rule 13's condition: the usable samples of rule 12 all hit one NURBS patch: its id, or
+    None."""
+    ids = [s for row in cell.ids for s in row]
+    for leaf in cell.leaves:
+        e = data.extra.get(int(leaf))
+        if e is not None:
+            ids += [int(s) for s in data.tree.ex_ids[e]]
+    pids = {int(data.patch[s]) for s in ids if data.cls[s] == pc and not data.null[s]}
+    if len(pids) != 1:
+        return None
+    p = pids.pop()
+    return p if data.tracer.object.patches[p].surface is not None else None
+
+
+def nearest_on_patch(data, patch, o, d, tmax, first=None):
+    """Rule 13's hit: a function (pt, nm) -> (point, normal facing d) of the ray's nearest hit
+    on ``patch`` (the exact tracer restricted to it; ``first``: the ray's known exact first
+    hit against every patch, a PatchHit of one row, used instead) where it lies near pt, nm;
+    else None."""
+    def hit(pt, nm):
+        h = first if first is not None else data.tracer.intersect(
+            o[None], d[None], tmax=np.array([tmax]), patches=np.array([[patch]]))
+        if not h.hit[0] or int(h.patch[0]) != patch:
+            return None
+        n = h.normal[0] if float(np.dot(h.normal[0], d)) <= 0 else -h.normal[0]
+        if np.linalg.norm(h.point[0] - pt) > NEWTON_MAX_MOVE_REL * data.diag \
+                or float(np.dot(n, nm)) < np.cos(np.radians(NEWTON_MAX_TURN_DEG)):
+            return None
+        return h.point[0], n
+    return hit
 
 
 def within_tolerance(data, cell, tol):
@@ -362,11 +415,46 @@ def verified_miss(data, cell, tol):
         not int(t.vp_flags[cell.vnode]) & BOUNDARY
 
 
-def answer_ri(data, cell, pc, o, d, tmax, opt):
-    """Rules 2b-11 for a located ray whose class is ``pc`` (>= 0)."""
+def newton_eligible(data, cell, pc, opt):
+    """Rules 12 and 13 both apply to the ray (a mirror, its usable samples reflect once off
+    one NURBS patch)."""
+    return bool(getattr(opt, "mirror_newton", False) and getattr(opt, "mirror_normal", False)
+                and data.mirror and reflects_once(data, cell, pc)
+                and one_patch(data, cell, pc) is not None)
+
+
+def calm(data, cell, first_known):
+    """Rule 13's tolerance bypass: the bake measured a finite error in every leaf and the cell,
+    none carries PATH_CHANGE, nor BOUNDARY unless the ray's exact first hit is known."""
+    t = data.tree
+    flags = [int(t.dir_flags[lf]) for lf in cell.leaves] + [int(t.vp_flags[cell.vnode])]
+    errs = [float(t.dir_err[lf]) for lf in cell.leaves] + [float(t.vp_err[cell.vnode])]
+    return all(math.isfinite(e) for e in errs) and not any(f & PATH_CHANGE for f in flags) \
+        and (first_known or not any(f & BOUNDARY for f in flags))
+
+
+def answer_ri(data, cell, pc, o, d, tmax, opt, first=None):
+    """Rules 2b-11 for a located ray whose class is ``pc`` (>= 0); ``first``: its exact first
+    hit against every patch (a PatchHit of one row) where known (a two-class ray)."""
     tol = getattr(opt, "max_error_deg", None)
     if tol is not None and not within_tolerance(data, cell, tol):
-        return Answer(TRACED, WHY_TOLERANCE, info={"pc": pc, "tolerance": True})
+        traced = Answer(TRACED, WHY_TOLERANCE, info={"pc": pc, "tolerance": True})
+        if not (getattr(opt, "mirror_newton", False) and getattr(opt, "mirror_normal", False)
+                and data.mirror and calm(data, cell, first is not None)):
+            return traced
+        if getattr(opt, "path_identity", False) and not same_path(data, cell, pc):
+            return Answer(TRACED, WHY_PATH, info={"pc": pc, "path": True})
+        if not newton_eligible(data, cell, pc, opt):
+            return traced
+        a = answer_untested(data, cell, pc, o, d, tmax, opt, first)
+        if a.info.get("newton"):
+            a.info["past_tolerance"] = True
+        return a if a.ans == TRACED or a.info.get("newton") else traced
+    return answer_untested(data, cell, pc, o, d, tmax, opt, first)
+
+
+def answer_untested(data, cell, pc, o, d, tmax, opt, first=None):
+    """Rules 2d-11 (after the tolerance)."""
     if getattr(opt, "path_identity", False) and not same_path(data, cell, pc):
         return Answer(TRACED, WHY_PATH, info={"pc": pc, "path": True})
     samples = [[data.vals[s] for s in row] for row in cell.ids]
@@ -416,7 +504,7 @@ def answer_ri(data, cell, pc, o, d, tmax, opt):
     # rule 6: intermediate rays, perspective-weighted directions
     inter = []
     for k in range(4):
-        acc = np.zeros(12)
+        acc = np.zeros(14)
         for j in range(6):
             if w[k][j] != 0.0:
                 val = samples[k][j].copy()
@@ -471,8 +559,13 @@ def answer_ri(data, cell, pc, o, d, tmax, opt):
         worst = max([BILINEAR, qkind] + [kind[k] for k in range(4) if ok[k]])
         once = reflects_once(data, cell, pc) if getattr(opt, "mirror_normal", False) \
             and data.mirror else None
+        exact_hit = None
+        if once and getattr(opt, "mirror_newton", False):
+            patch = one_patch(data, cell, pc)
+            exact_hit = None if patch is None else nearest_on_patch(data, patch, o, d, tmax,
+                                                                     first)
         return finish(KIND_CODE[worst], o, d, tmax, out[0:3], od / lod, out[6:9], nm / lnm,
-                      pc, info, once)
+                      pc, info, once, exact_hit)
     why = WHY_USABLE if few else WHY_THRESHOLD if cut else WHY_BLEND
     if few and opt.null_interp:
         nul = answer_null(data, cell, pc, o, d, tmax, info)
@@ -565,7 +658,7 @@ def answer_raytree(data, cell, o, d, tmax):
     if c == -1:
         return Answer(MISS)
     W = bilinear(cell.alpha, cell.beta)
-    out = np.zeros(12)
+    out = np.zeros(14)
     for k in range(4):
         wk = bilinear(*cell.lq[k])
         for j in range(4):
@@ -588,6 +681,7 @@ class Reference:
     def __init__(self, tree, st, o, d, tmax):
         self.data = TreeData(tree)
         self.data.mirror = st.scene.object.material.kind == "mirror"
+        self.data.tracer = st.tracer
         self.o = np.asarray(o, np.float64)
         self.d = np.asarray(d, np.float64)
         self.tmax = np.asarray(tmax, np.float64)
@@ -601,6 +695,7 @@ class Reference:
         if located:
             hit = st.tracer.intersect(self.o[located], self.d[located], tmax=self.tmax[located])
             self.any_hit = {i: bool(h) for i, h in zip(located, hit.hit)}
+            self.any_first, self.any_row = hit, {i: row for row, i in enumerate(located)}
         # the exact first hit of each two-class ray against only its candidate patches
         two = [i for i, r in enumerate(self.rule2) if r is not None and r[0] == "two"]
         self.first_hit = {}
@@ -636,7 +731,9 @@ class Reference:
             if tol is not None and not verified_miss(self.data, cell, tol) and self.any_hit[i]:
                 return Answer(TRACED, WHY_UNSAMPLED, info={**info, "unsampled": True})
             return Answer(MISS, info=info)
-        rec = answer_ri(self.data, cell, pc, o, d, tmax, opt)
+        first = self.any_first.take([self.any_row[i]]) \
+            if self.rule2[i][0] == "two" else None
+        rec = answer_ri(self.data, cell, pc, o, d, tmax, opt, first)
         rec.info["two_class"] = self.rule2[i][0] == "two"
         return rec
 

@@ -29,7 +29,8 @@ COUNT_KEYS = {"camera_rays", "object_candidates", "object_hits", "events", "obje
 TRACE_ARRAYS = {"hit": ("b", ()), "null": ("b", ()), "out_origin": ("f", (3,)),
                 "out_dir": ("f", (3,)), "t_first": ("f", ()), "point": ("f", (3,)),
                 "normal": ("f", (3,)), "patch": ("i", ()), "cls": ("i", ()), "events": ("i", ()),
-                "refl_dir": ("f", (3,)), "fresnel": ("f", ()), "tree": ("u", ())}
+                "refl_dir": ("f", (3,)), "fresnel": ("f", ()), "tree": ("u", ()),
+                "uv": ("f", (2,))}
 
 
 @pytest.fixture(scope="module")
@@ -459,3 +460,21 @@ def test_read_only_output_folder_refused_first(files, tmp_path, capsys, monkeypa
         assert f"cannot write in {ro}" in err
     finally:
         (tmp_path / "ro").chmod(0o755)
+
+
+def test_mirror_rays_options():
+    """--mirror-rays picks the mirror rule: reflect (the default) and newton both answer from
+    the normal, newton with exact hits; interpolate is the paper's blend. Exact hits without
+    the normal rule are refused."""
+    from riray.cli import _query_options, build_parser
+    from riray.ritree.query import QueryOptions
+    got = {}
+    for mode in (None, "reflect", "newton", "interpolate"):
+        argv = ["render", "teapot", "--tree", "t.rit", "--out", "x"]
+        args = build_parser().parse_args(argv + ([] if mode is None else ["--mirror-rays", mode]))
+        opt = _query_options(args)
+        got[mode] = (opt.mirror_normal, opt.mirror_newton)
+    assert got == {None: (True, False), "reflect": (True, False), "newton": (True, True),
+                   "interpolate": (False, False)}
+    with pytest.raises(ValueError, match="mirror_newton needs mirror_normal"):
+        QueryOptions(mirror_normal=False, mirror_newton=True).validate()

@@ -88,6 +88,11 @@ OPTIONS = {
     "mirror_normal_angle20": paper(angle_deg=20.0, extrapolation=0.25, mirror_normal=True),
     "tolerance_mirror_normal": QueryOptions(angle_deg=None, max_error_deg=2.0,
                                             mirror_normal=True),
+    "mirror_newton": paper(angle_deg=None, mirror_normal=True, mirror_newton=True),
+    "tolerance_mirror_newton": QueryOptions(angle_deg=None, max_error_deg=2.0,
+                                            mirror_normal=True, mirror_newton=True),
+    "tolerance_path_mirror_newton": QueryOptions(angle_deg=None, max_error_deg=1.0,
+                                                 path_identity=True, mirror_newton=True),
 }
 
 # Cases: scene, camera baked for, BakeParams, max_events override, extra cameras whose rays are
@@ -107,7 +112,7 @@ CASES = {
                    max_events=None, extra_cameras=(), clip=0.0,
                    options=("angle_off", "angle20", "unverified", "extrapolation", "raytree",
                             "intermediate_dist", "tolerance", "tolerance_path", "mirror_normal",
-                            "mirror_normal_angle20")),
+                            "mirror_normal_angle20", "mirror_newton", "tolerance_mirror_newton")),
     # the glass vase with at most 3 events: rays through both walls are trapped (null)
     "vase_glass_trapped": dict(scene="vase_glass", camera="close",
                                params=BakeParams(viewpoint_depth=3, direction_depth=5,
@@ -120,7 +125,8 @@ CASES = {
                                           viewpoint_refine=0),
                         max_events=None, extra_cameras=(), clip=0.3,
                         options=("angle_off", "unverified", "extrapolation", "intermediate",
-                                 "distance", "tolerance", "tolerance_mirror_normal")),
+                                 "distance", "tolerance", "tolerance_mirror_normal",
+                                 "tolerance_mirror_newton", "tolerance_path_mirror_newton")),
 }
 PAIRS = [(c, o) for c, spec in CASES.items() for o in spec["options"]]
 
@@ -254,6 +260,10 @@ def test_rules_are_exercised(cases):
                 paths["hidden"] += 1
             if info.get("once") is not None and ans_interpolated(rec.ans):
                 paths["mirror normal" if info["once"] else "mirror normal declined"] += 1
+            if info.get("newton") and ans_interpolated(rec.ans):
+                paths["mirror newton hit"] += 1
+                if info.get("past_tolerance"):
+                    paths["mirror newton hit past the tolerance"] += 1
     print("answer kinds:", {f"{ANSWER_NAMES[a]}/{WHY_NAMES[w] or '-'}": n
                             for (a, w), n in sorted(kinds.items())})
     print("rule paths:", dict(sorted(paths.items())))
@@ -273,7 +283,8 @@ def test_rules_are_exercised(cases):
                   "extra triangle 1", "extra extrapolated",
                   "direction-level outlier dropped, answered",
                   "viewpoint-level outlier dropped, answered", "unverified leaves skipped",
-                  "hidden", "mirror normal", "mirror normal declined")
+                  "hidden", "mirror normal", "mirror normal declined", "mirror newton hit",
+                  "mirror newton hit past the tolerance")
     missing = {p: paths[p] for p in need_paths if paths[p] < 3}
     assert not missing, f"rules too rarely reached: {missing}; all: {dict(paths)}"
 

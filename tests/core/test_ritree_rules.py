@@ -256,3 +256,25 @@ def check_extra_rule(null, extras, edge):
     assert_field(res, three, al, be, lx, ly)
     assert np.all(ans[rest & (al + be < 1)] == TRACED)
     assert_traced(res, rest & (al + be < 1), d, ground)
+
+
+def test_stage_clock_counts_a_nested_stage_once():
+    """A stage run inside another is that stage's CPU time only: the outer stage keeps its own
+    work, and the two add up to the whole."""
+    from riray.ritree.query import StageClock
+    import time
+
+    def spin(s):
+        t = time.process_time()
+        while time.process_time() - t < s:
+            pass
+    clock = StageClock()
+    t0 = time.process_time()
+    with clock("outer"):
+        spin(0.02)
+        with clock("inner"):
+            spin(0.08)
+    whole = time.process_time() - t0
+    assert clock.cpu["inner"] >= 0.08
+    assert 0.02 <= clock.cpu["outer"] < clock.cpu["inner"]
+    assert abs(clock.cpu["outer"] + clock.cpu["inner"] - whole) < 0.01

@@ -1128,6 +1128,7 @@ def test_stored_samples_round_trip():
                            out_d_q=rng.integers(-32767, 32767, (n, 2)).astype(np.int16),
                            point_q=rng.integers(0, 65535, (n, 3)).astype(np.uint16),
                            normal_q=rng.integers(-32767, 32767, (n, 2)).astype(np.int16),
+                           uv_q=rng.integers(0, 65535, (n, 2)).astype(np.uint16),
                            patch=patch, null=rng.random(n) < 0.1, tree=hashes.astype(np.uint32),
                            lo=np.zeros(3), hi=np.ones(3))
         st = ps.stored()
