@@ -49,12 +49,11 @@ def _query_options(args):
                         null_interp=args.null_rays == "interpolate",
                         max_error_deg=None if args.max_error < 0 else args.max_error,
                         path_identity=args.path_identity,
-                        mirror_normal=args.mirror_rays in ("reflect", "newton"),
-                        mirror_newton=args.mirror_rays == "newton").validate()
+                        mirror_rays=args.mirror_rays).validate()
 
 
 def _tree_opts(p):
-    from .ritree.query import DEFAULT_MAX_ERROR_DEG
+    from .ritree.query import DEFAULT_MAX_ERROR_DEG, MIRROR_RAYS, QueryOptions
     p.add_argument("--policy", choices=("ri", "raytree"), default="ri",
                    help="ri: the paper's heuristics; raytree: Bala et al.'s identical-ray-tree rule")
     p.add_argument("--extrapolation", type=float, default=None, metavar="T",
@@ -83,13 +82,13 @@ def _tree_opts(p):
     p.add_argument("--null-rays", choices=("interpolate", "trace"), default="interpolate",
                    help="a ray whose interpolants are all null (trapped) is answered null "
                    "(interpolate, the default) or traced (trace, the paper)")
-    p.add_argument("--mirror-rays", choices=("reflect", "newton", "interpolate"),
-                   default="reflect",
+    p.add_argument("--mirror-rays", choices=MIRROR_RAYS, default=QueryOptions.mirror_rays,
                    help="mirrors, policy ri: a ray whose usable samples all reflect once leaves "
-                   "along the query direction reflected about the interpolated normal "
-                   "(reflect, the default), the same at the exact hit Newton finds from the "
-                   "interpolated patch parameters where those samples share one patch "
-                   "(newton), or along the interpolated output ray (interpolate, the paper)")
+                   "from the exact hit Newton finds on their patch from the interpolated patch "
+                   "parameters, along the query direction reflected about its normal (newton, "
+                   "the default, where those samples share one NURBS patch; else reflect); "
+                   "from the interpolated hit, reflected about the interpolated normal "
+                   "(reflect); or along the interpolated output ray (interpolate, the paper)")
 
 
 def _bake_opts(p):

@@ -147,9 +147,10 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
     use_mirror_normal: BoolProperty(name="Reflect about normal", default=True,
                                     description="Mirrors: a ray whose usable samples all "
                                                 "reflect once leaves along the view ray "
-                                                "reflected about the interpolated normal, "
-                                                "instead of the interpolated output ray")
-    use_mirror_newton: BoolProperty(name="Exact mirror hits", default=False,
+                                                "reflected about its normal (interpolated, or "
+                                                "exact with Exact mirror hits), instead of "
+                                                "the interpolated output ray")
+    use_mirror_newton: BoolProperty(name="Exact mirror hits", default=True,
                                     description="With Reflect about normal, where those "
                                                 "samples share one NURBS patch: reflect at "
                                                 "the exact hit Newton's method finds from the "
@@ -301,8 +302,8 @@ def query_options(obj) -> dict:
             "null_interp": bool(p.use_null_interp),
             "max_error_deg": float(p.max_error_deg) if p.use_max_error else None,
             "path_identity": bool(p.use_path_identity),
-            "mirror_normal": bool(p.use_mirror_normal),
-            "mirror_newton": bool(p.use_mirror_normal and p.use_mirror_newton)}
+            "mirror_rays": ("newton" if p.use_mirror_newton else "reflect")
+            if p.use_mirror_normal else "interpolate"}
 
 
 def bake_params(obj) -> dict:

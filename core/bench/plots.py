@@ -6,7 +6,8 @@ engine never needs it; ``pip install 'riray[bench]'``).
   versus the interpolated frame's object-only time relative to the exact render's in the
   same pass (the ratio cancels the load of a shared machine, which single sweep passes do
   not); every sweep point, the render-time policies (angle threshold, baked-error tolerance,
-  tolerance with path identity, on mirrors tolerance with exact mirror hits) as curves and the raytree policy as a point, the Pareto
+  tolerance with path identity, on mirrors the tolerance with mirror rays from the
+  interpolated normal instead of the default exact hits) as curves and the raytree policy as a point, the Pareto
   front (nothing else is both faster and more accurate) joined, the exact render at 1
   dashed.
 - ``bake_depth.png``: bake wall time and cache size versus direction depth, one line per
@@ -22,11 +23,11 @@ import math
 from pathlib import Path
 
 SWEEP_MARKERS = {"depth": "o", "tolerance": "s", "angle": "^", "distance": "v",
-                 "extrapolation": "D", "max_error": "P", "path": "X", "newton": "d",
+                 "extrapolation": "D", "max_error": "P", "path": "X", "reflect": "d",
                  "raytree": "h",
-                 "table": "*", "deeper tree": "p", "deeper tree, exact mirror hits": "8"}
+                 "table": "*", "deeper tree": "p", "deeper tree, reflect": "8"}
 # Sweeps drawn as curves (points joined in time order): the render-time policies compared.
-CURVES = ("angle", "max_error", "path", "newton")
+CURVES = ("angle", "max_error", "path", "reflect")
 
 
 def _plt():
@@ -79,9 +80,9 @@ def plot_pareto(result, path):
     else:            # the default tolerance on the deeper tree, on the swept view
         view = result["config"]["sweep_view"]
         rows += [dict(r, sweep={"deeper": "deeper tree",
-                                "deeper_newton": "deeper tree, exact mirror hits"}[r["row"]])
+                                "deeper_reflect": "deeper tree, reflect"}[r["row"]])
                  for r in result["tables"]
-                 if r["row"] in ("deeper", "deeper_newton") and r["view"] == view]
+                 if r["row"] in ("deeper", "deeper_reflect") and r["view"] == view]
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     if not scenes:
         return None

@@ -6,9 +6,10 @@ is baked for that camera and five rows are measured: *exact* (every object ray t
 *interpolated* without an angle threshold, *interpolated* with the angle threshold,
 *interpolated* with the default baked-error tolerance, and the *raytree* policy (Bala et al.'s
 identical-ray-tree rule); a sixth, *deeper*, is the default tolerance on a second tree for the
-camera baked at ``deeper_tree``'s depths, against its own exact passes. On a mirror, each tree
-also gets the default tolerance with exact mirror hits (``--mirror-rays newton``: rows
-*interp_newton* and *deeper_newton*). Columns: rays traced,
+camera baked at ``deeper_tree``'s depths, against its own exact passes. On a mirror, whose
+default answers come from exact mirror hits (``--mirror-rays newton``), each tree also gets the
+default tolerance with mirror rays from the interpolated hit and normal (``--mirror-rays
+reflect``: rows *interp_reflect* and *deeper_reflect*). Columns: rays traced,
 object-only and total CPU seconds (the paper's split, summed over a pass's shares) and a
 machine-independent work count - flat-sub-patch pairs solved by Newton and Newton iterations
 (tracing), samples gathered (interpolation: 16 per ray looked up in the tree, 2 more per ray
@@ -72,22 +73,23 @@ from ..scene.samples import SAMPLES, build
 from .exact_bench import machine
 
 VIEWS = ("far", "close", "zoom")
-ROWS = ("exact", "interp", "interp_angle", "interp_tol", "interp_newton", "raytree", "deeper",
-        "deeper_newton")
+ROWS = ("exact", "interp", "interp_angle", "interp_tol", "interp_reflect", "raytree", "deeper",
+        "deeper_reflect")
 ROW_LABELS = {"exact": "ray traced", "interp": "interpolated (no angle threshold)",
               "interp_angle": "interpolated (angle threshold {angle:g} deg)",
               "interp_tol": f"interpolated (default: max error {DEFAULT_MAX_ERROR_DEG:g} deg)",
-              "interp_newton": "default tolerance, exact mirror hits (--mirror-rays newton)",
+              "interp_reflect": "default tolerance, mirror rays from the interpolated normal "
+                                "(--mirror-rays reflect)",
               "raytree": "raytree policy (Bala et al.)",
               "deeper": "default tolerance, deeper tree (viewpoint depth {vp} + refine {vr}, "
                          "direction depth {dd})",
-              "deeper_newton": "deeper tree, exact mirror hits"}
+              "deeper_reflect": "deeper tree, mirror rays from the interpolated normal"}
 
 
 def paper(**kw) -> QueryOptions:
     """The paper's rules with options ``kw``: no baked-error tolerance, mirror rays
     interpolated."""
-    return QueryOptions(**{"max_error_deg": None, "mirror_normal": False, **kw})
+    return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate", **kw})
 SAMPLES_PER_LOOKUP = 16      # a query ray reads 4 viewpoints x 4 direction-cell corners
 SAMPLES_PER_EXTRA = 2        # ... and at least 2 extra samples when a leaf's extras answer it
 TRACER_KEYS = ("pairs", "newton_iters", "fallback_pairs")
@@ -325,7 +327,7 @@ def measure_configs(st, cam, size, configs: dict, workers) -> dict:
                       "object_cpu_s": _median(ex_obj), "total_cpu_s": _median(ex_tot),
                       "object_cpu_s_all": ex_obj, "total_cpu_s_all": ex_tot,
                       **{k: int(first["s_x"].get(k, 0)) for k in TRACER_KEYS},
-                      "exact_first_hits": 0, "exact_mirror_hits": 0, "newton_cpu_s": 0.0,
+                      "exact_first_hits": 0, "exact_mirror_hits": 0, "mirror_newton_cpu_s": 0.0,
                       "samples_gathered": 0,
                       "angle_mean_deg": 0.0, "angle_p99_deg": 0.0, "angle_max_deg": 0.0,
                       "psnr_db": float("inf"), "max_pixel_diff": 0.0, "hit_disagreements": 0}}
@@ -352,7 +354,7 @@ def measure_configs(st, cam, size, configs: dict, workers) -> dict:
                    **{t: int(p["s_i"].get(t, 0)) for t in TRACER_KEYS},
                    "exact_first_hits": int(p["s_i"].get("exact_first_hits", 0)),
                    "exact_mirror_hits": int(p["s_i"].get("exact_mirror_hits", 0)),
-                   "newton_cpu_s": _median([q["s_i"].get("query_newton_cpu_s", 0.0)
+                   "mirror_newton_cpu_s": _median([q["s_i"].get("query_newton_cpu_s", 0.0)
                                             for q in ps]),
                    "samples_gathered": p["samples_gathered"], **_errors(p)}
         images[k] = p["img_i"]
@@ -382,7 +384,7 @@ def _table_configs(cfg, mirror=False):
     return {"interp": paper(angle_deg=None),
             "interp_angle": paper(angle_deg=cfg.angle),
             "interp_tol": QueryOptions(),
-            **({"interp_newton": QueryOptions(mirror_newton=True)} if mirror else {}),
+            **({"interp_reflect": QueryOptions(mirror_rays="reflect")} if mirror else {}),
             "raytree": paper(policy="raytree", angle_deg=None)}
 
 
@@ -428,8 +430,8 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
                     deeper = _bake_deeper(cfg, name, st, scene, cam, workers, tree_dir, log)
                     configs["deeper"] = (deeper[0], QueryOptions(), cfg.repeats)
                     if mirror:
-                        configs["deeper_newton"] = (deeper[0], QueryOptions(mirror_newton=True),
-                                                    cfg.repeats)
+                        configs["deeper_reflect"] = (deeper[0], QueryOptions(mirror_rays="reflect"),
+                                                     cfg.repeats)
                 points = []
                 if cfg.sweeps and view == cfg.sweep_view and name not in cfg.sweep_scenes:
                     # the policy curves of every scene's Pareto plot, on the table tree (the
@@ -449,7 +451,7 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
                     f"{rows['exact']['object_cpu_s']:.2f} -> {r['object_cpu_s']:.2f} s")
                 if deeper is not None:
                     tables += [_deeper_row(cfg, name, cam, rows[k], deeper[1], log, k)
-                               for k in ("deeper", "deeper_newton") if k in rows]
+                               for k in ("deeper", "deeper_reflect") if k in rows]
                     _drop_tree(*deeper, cfg)
                 sweeps += _point_rows(cfg, name, points, rows, log)
                 _drop_tree(tree, brec, cfg)
@@ -483,8 +485,8 @@ def _bake_deeper(cfg, name, st, scene, cam, workers, tree_dir, log) -> tuple:
 
 
 def _deeper_row(cfg, name, cam, r, brec, log, kind="deeper") -> dict:
-    """A row on the deeper tree ("deeper": the default options; "deeper_newton": with exact
-    mirror hits), measured in the view's batch against its own interleaved exact halves (its
+    """A row on the deeper tree ("deeper": the default options; "deeper_reflect": mirror rays
+    from the interpolated normal), measured in the view's batch against its own interleaved exact halves (its
     speed-up is of the same passes)."""
     vp, dd, vr = cfg.deeper_tree
     log(f"{name}/{cam.name}: {kind} traced {r['rays_traced']}/{r['object_rays']}, "
@@ -527,7 +529,7 @@ def _point_rows(cfg, name, points, rows, log) -> list:
         out.append({"scene": name, "view": cfg.sweep_view, "sweep": sweep, **_bake_cols(brec),
                     "policy": opt.policy, "angle": opt.angle_deg, "distance": opt.distance,
                     "extrapolation": opt.extrapolation, "max_error": opt.max_error_deg,
-                    "path_identity": opt.path_identity, "mirror_newton": opt.mirror_newton, **x})
+                    "path_identity": opt.path_identity, "mirror_rays": opt.mirror_rays, **x})
     return out
 
 
@@ -538,14 +540,14 @@ def _is_mirror(name) -> bool:
 # The render-time policies compared on every scene's Pareto plot (one tree, no re-bake).
 def _policy_points(cfg, mirror=False) -> list:
     """(sweep, key, options): the angle threshold, the baked-error tolerance (alone, with
-    path identity and, on a mirror, with exact mirror hits: ``--mirror-rays newton``) and the
-    raytree policy."""
-    newton = [("newton", f"{t}", QueryOptions(angle_deg=None, max_error_deg=t,
-                                              mirror_newton=True))
-              for t in cfg.max_errors] if mirror else []
+    path identity and, on a mirror, with mirror rays from the interpolated normal instead of
+    exact mirror hits: ``--mirror-rays reflect``) and the raytree policy."""
+    reflect = [("reflect", f"{t}", QueryOptions(angle_deg=None, max_error_deg=t,
+                                                mirror_rays="reflect"))
+               for t in cfg.max_errors] if mirror else []
     return ([("angle", f"{a}", paper(angle_deg=a)) for a in cfg.angles]
             + [("max_error", f"{t}", QueryOptions(angle_deg=None, max_error_deg=t))
-               for t in cfg.max_errors] + newton
+               for t in cfg.max_errors] + reflect
             + [("path", f"{t}", QueryOptions(angle_deg=None, max_error_deg=t,
                                              path_identity=True)) for t in cfg.path_max_errors]
             + [("raytree", "Bala et al.", paper(policy="raytree", angle_deg=None))])
@@ -661,14 +663,14 @@ TABLE_CSV = ("scene", "view", "row", "label", "rays_traced", "object_rays", "tra
              "object_cpu_s", "total_cpu_s", "object_speedup", "total_speedup",
              "query_own_cpu_s", "query_own_fraction", "pairs",
              "newton_iters", "fallback_pairs", "exact_first_hits", "exact_mirror_hits",
-             "newton_cpu_s", "samples_gathered",
+             "mirror_newton_cpu_s", "samples_gathered",
              "angle_mean_deg", "angle_p99_deg", "angle_max_deg", "psnr_db", "max_pixel_diff",
              "hit_disagreements", "viewpoint_depth", "direction_depth", "viewpoint_refine",
              "tolerance", "bake_s",
              "bake_cpu_s", "cache_bytes", "tree_samples")
 SWEEP_CSV = ("scene", "view", "sweep", "viewpoint_depth", "direction_depth", "tolerance",
              "policy", "angle", "distance", "extrapolation", "max_error", "path_identity",
-             "mirror_newton",
+             "mirror_rays",
              "bake_s", "bake_cpu_s",
              "cache_bytes", "tree_samples", "bake_rays", "rays_traced", "object_rays",
              "traced_fraction", "object_cpu_s", "total_cpu_s", "exact_object_cpu_s",
@@ -802,7 +804,8 @@ def sweeps_markdown(rows) -> str:
                 f"{r['tolerance']:g} | {_fmt(r['angle'], '{:g}')} | {_fmt(r['distance'], '{:g}')} | "
                 f"{_fmt(r['extrapolation'], '{:g}')} | {_fmt(r.get('max_error'), '{:g}')}"
                 f"{' path' if r.get('path_identity') else ''}"
-                f"{' newton' if r.get('mirror_newton') else ''} | {r['bake_s']:.1f} | "
+                f"{' reflect' if r.get('mirror_rays') == 'reflect' else ''} | "
+                f"{r['bake_s']:.1f} | "
                 f"{r['cache_bytes'] / 1e6:.2f} | {100 * r['traced_fraction']:.1f} | "
                 f"{r['object_cpu_s']:.2f} ({r['exact_object_cpu_s']:.2f}) | "
                 f"{r['total_cpu_s']:.2f} ({r['exact_total_cpu_s']:.2f}) | "

@@ -39,7 +39,7 @@ from .region import Region
 from .shardmerge import MergeBuffers, block_shifts, interleave
 from .tree import (BOUNDARY, PATH_CHANGE, SAMPLE_FIELDS, UNVERIFIED, BakeParams, PackedSamples,
                    RITree, Samples)
-from .verify import MEASURE_MIRROR_NORMAL, viewpoint_errors
+from .verify import MEASURE_MIRROR_RAYS, viewpoint_errors
 
 # The angle threshold (degrees) of the refinement rule (refine_rule): the paper's value.
 REFINE_ANGLE_DEG = 20.0
@@ -277,8 +277,7 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
         tree.samples = tree.samples.packed(tree.box_lo, tree.box_hi)
     tree.meta.update({"fingerprint": fingerprint(st.scene.object, st.scene.render.max_events),
                       "region": (region or Region()).describe(), "refine_passes": passes,
-                      "viewpoint_mirror_rays": "reflect" if MEASURE_MIRROR_NORMAL
-                      else "interpolate",
+                      "viewpoint_mirror_rays": MEASURE_MIRROR_RAYS,
                       "bake_seconds": round(time.perf_counter() - t0, 3),
                       "bake_cpu_s": round(_cpu_seconds() - c0 + baker.remote_cpu_s, 3)})
     if cluster is not None:

@@ -17,11 +17,11 @@ the four direction trees give four leaf cells (DQs), 16 samples in all. Then
 Interpolated first-hit points and normals feed local illumination; a dielectric's reflected
 ray and Fresnel weight come from the interpolated normal. A mirror ray whose usable samples
 all reflect once is answered as the exact tracer answers it from its hit: the query direction
-reflected about the interpolated normal (``mirror_normal``, on by default: on the teapot and
-the bowl it cuts the mean error by a fifth; the paper blends the output rays). With
-``mirror_newton``, where those samples share one NURBS patch, the hit and normal are the exact
-ones Newton's method finds on it from the interpolated patch parameters (trace.polish), and
-such a ray outside the tolerance is answered so too where the bake saw no path change there.
+reflected about its normal (``mirror_rays``; the paper blends the output rays). By default
+("newton"), where those samples share one NURBS patch, the hit and normal are the exact ones
+Newton's method finds on it from the interpolated patch parameters (trace.polish), and such a
+ray outside the tolerance is answered so too where the bake saw no path change there;
+"reflect" uses the interpolated hit and normal.
 """
 
 from __future__ import annotations
@@ -48,12 +48,13 @@ BLEND_BLOCK = 1 << 15
 # Interpolated unit vectors shorter than this before normalization (opposed samples) are not
 # trusted: the ray is traced.
 MIN_BLEND_NORM = 1e-3
-# How a mirror ray is answered (QueryOptions.mirror_normal, mirror_newton; --mirror-rays): the
+# How a mirror ray is answered (QueryOptions.mirror_rays "interpolate", "reflect", "newton"): the
 # blended output ray (the paper);
 # the query direction reflected about the interpolated normal at the interpolated hit, for
 # units whose usable samples all reflect once; and, where those samples also share one NURBS
 # patch, reflected at the exact hit that Newton finds from the interpolated patch parameters.
 MIRROR_BLEND, MIRROR_NORMAL, MIRROR_NEWTON = 0, 1, 2
+MIRROR_RAYS = ("newton", "reflect", "interpolate")
 # The Newton hit is kept only near the interpolated one: within this distance (relative to the
 # object's box diagonal; interpolated hits where the tolerance answers are ~1e-4 off) and with
 # a normal within this angle of the interpolated normal (a grazing ray's second root, where it
@@ -110,13 +111,13 @@ class QueryOptions:
                                        # keep the tolerance, which then traces every ray)
     path_identity: bool = False        # trace rays whose usable samples differ in ray-tree hash
                                        # or whose leaves / cell the bake saw change path
-    mirror_normal: bool = True         # mirrors ("ri" policy): a ray whose usable samples all
-                                       # reflect once leaves along the query direction reflected
-                                       # about the interpolated normal, from the interpolated
-                                       # hit point; False: the interpolated output ray (paper)
-    mirror_newton: bool = False        # with mirror_normal, where those samples share one NURBS
-                                       # patch: the hit and normal are the exact ones Newton
-                                       # finds from the interpolated patch parameters
+    mirror_rays: str = "newton"        # mirrors ("ri" policy), a ray whose usable samples all
+                                       # reflect once: "reflect" leaves along the query
+                                       # direction reflected about the interpolated normal,
+                                       # from the interpolated hit point; "newton" (where those
+                                       # samples share one NURBS patch) the same at the exact
+                                       # hit Newton finds from the interpolated patch
+                                       # parameters; "interpolate": the blended output ray (paper)
 
     def validate(self) -> "QueryOptions":
         if self.policy not in ("ri", "raytree"):
@@ -127,9 +128,8 @@ class QueryOptions:
         if self.threshold_leaves not in ("unverified", "all"):
             raise ValueError("threshold_leaves must be 'unverified' or 'all', "
                              f"got {self.threshold_leaves!r}")
-        if self.mirror_newton and not self.mirror_normal:
-            raise ValueError("mirror_newton needs mirror_normal (the exact hit replaces the "
-                             "interpolated one of the normal rule)")
+        if self.mirror_rays not in MIRROR_RAYS:
+            raise ValueError(f"mirror_rays must be one of {MIRROR_RAYS}, got {self.mirror_rays!r}")
         for name in ("extrapolation", "angle_deg", "distance", "max_error_deg",
                      "fallback_angle_deg"):
             val = getattr(self, name)
@@ -194,7 +194,7 @@ class KnownHits:
 
 
 # Stages whose time is exact tracing the query calls (the rest is the query's own work):
-# "newton" is the tracer's Newton step on known patches (mirror_newton).
+# "newton" is the tracer's Newton step on known patches (mirror_rays "newton").
 TRACING_STAGES = ("first_hits", "trace", "newton")
 
 
@@ -404,10 +404,10 @@ class TreeQuery:
             # units whose usable samples all reflect once: answered from the normal (and,
             # where they share one patch, from Newton's hit on it)
             u_mirror = None
-            if opt.mirror_normal and self.material.kind == "mirror":
+            if opt.mirror_rays != "interpolate" and self.material.kind == "mirror":
                 once = np.all(tab.once[items.ids[u_set]] | ~u_ok, axis=1)
                 u_mirror = np.where(once, MIRROR_NORMAL, MIRROR_BLEND).astype(np.int8)
-                if opt.mirror_newton:
+                if opt.mirror_rays == "newton":
                     pid = tab.patch[items.ids[u_set]]
                     top = np.where(u_ok, pid, -1).max(axis=1)
                     one = (top == np.where(u_ok, pid, np.iinfo(np.int32).max).min(axis=1)) \
@@ -582,7 +582,7 @@ class TreeQuery:
     def _within_tolerance(self, loc, go, set_of, s_leaf, ans, why, known):
         """Of the located rays ``go``, those whose four leaves (decided once per set) and
         viewpoint cell the bake measured within ``max_error_deg`` (an unmeasured NaN is not);
-        the others are traced (WHY_TOLERANCE). With ``mirror_newton``, a mirror ray outside
+        the others are traced (WHY_TOLERANCE). With mirror_rays "newton", a mirror ray outside
         the tolerance whose leaves and cell the bake did not see change path goes on as one
         that only an exact hit may answer (``_must``): the bake's errors are the blend's, which
         that hit replaces. Where the object's outline crosses them (BOUNDARY), only if the ray's
@@ -592,7 +592,7 @@ class TreeQuery:
         tol, tree = self.opt.max_error_deg, self.tree
         s_ok = np.all(tree.dir_err[s_leaf] <= tol, axis=1)
         ok = s_ok[set_of[go]] & (tree.vp_err[loc.vnode[go]] <= tol)
-        if self.opt.mirror_newton and self.opt.mirror_normal and self.material.kind == "mirror":
+        if self.opt.mirror_rays == "newton" and self.material.kind == "mirror":
             flags = np.bitwise_or.reduce(tree.dir_flags[s_leaf], axis=1)[set_of[go]] \
                 | tree.vp_flags[loc.vnode[go]]
             exact = known.pos[loc.ray[go]] >= 0

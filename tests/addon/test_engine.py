@@ -227,10 +227,12 @@ def test_still_through_baked_tree_matches_core(bl, tmp_path):
 
 
 def test_max_error_and_path_identity_trace_through_baked_tree(bl, tmp_path):
-    """The render-time tolerance (Max error) and Path identity reach core's query: with a
-    tolerance far below any error the bake measured nearly every object pixel is traced (the
-    Traced pass and LAST_RENDER agree); off, far fewer are; path identity only adds traced
-    rays; none of it needs a re-bake."""
+    """The render-time tolerance (Max error), Path identity and the mirror rules reach core's
+    query: with a tolerance far below any error the bake measured and mirror rays from the
+    interpolated normal, nearly every object pixel is traced (the Traced pass and LAST_RENDER
+    agree); with exact mirror hits (the default) most of those are answered by Newton instead;
+    with the tolerance off far fewer are traced; path identity only adds traced rays; none of
+    it needs a re-bake."""
     bpy = bl.bpy
     obj = build_scene(bl, tmp_path)
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "tree_tolerance.blend"))
@@ -258,18 +260,22 @@ def test_max_error_and_path_identity_trace_through_baked_tree(bl, tmp_path):
     assert bl.properties.query_options(obj)["path_identity"] is True
     path = render()
     p.use_path_identity = False
-    assert bl.properties.query_options(obj)["mirror_normal"] is True      # core's default
-    assert bl.properties.query_options(obj)["mirror_newton"] is False     # core's default
-    p.use_mirror_newton = True
-    assert bl.properties.query_options(obj)["mirror_newton"] is True
+    assert bl.properties.query_options(obj)["mirror_rays"] == "newton"    # core's default
+    p.use_mirror_newton = False
+    assert bl.properties.query_options(obj)["mirror_rays"] == "reflect"
     p.use_mirror_normal = False
-    assert bl.properties.query_options(obj)["mirror_normal"] is False     # the paper's rule
-    assert bl.properties.query_options(obj)["mirror_newton"] is False     # needs the normal rule
-    p.use_mirror_normal, p.use_mirror_newton = True, False
+    assert bl.properties.query_options(obj)["mirror_rays"] == "interpolate"   # the paper's rule
+    p.use_mirror_newton = True
+    assert bl.properties.query_options(obj)["mirror_rays"] == "interpolate"   # needs the normal
+    p.use_mirror_normal = True
     p.use_max_error, p.max_error_deg = True, 1e-4
     assert bl.properties.query_options(obj)["max_error_deg"] == pytest.approx(1e-4)
+    tight_newton = render()
+    p.use_mirror_newton = False
     tight = render()
+    p.use_mirror_newton = True
     assert bl.cache.tree_status(obj, bpy.context.evaluated_depsgraph_get(),
                                 memo=False)["state"] == "fresh"       # no re-bake needed
     assert off < 0.5 and off <= path            # here 0.11 / 0.11 / 1.0
     assert tight >= 0.98
+    assert tight_newton < 0.5                   # here 0.18

@@ -65,12 +65,12 @@ Rules (policy "ri"; paper sections 4.1-4.3, 5.1-5.4), per ray:
     no extra samples); success -> NULL_S with the interpolated hit point and normal.
 11. Hidden: an interpolated (or null) first hit at t >= tmax along the query ray -> MISS.
     Normals are turned to face the query ray.
-12. Mirror normal (``mirror_normal``, after the rules of the paper, commit of issue #11's
+12. Mirror normal (``mirror_rays`` "reflect" or "newton", after the rules of the paper, commit of issue #11's
     stop 15): on a mirror, an interpolated ray (rules 5-9) whose usable samples - corners and
     the four leaves' extra samples of its class, not null - all left the object at their
     first hit leaves from its interpolated hit point along the query direction mirrored about
     its interpolated normal.
-13. Mirror Newton hit (``mirror_newton``, with rule 12): where those usable samples also all
+13. Mirror Newton hit (``mirror_rays`` "newton", with rule 12): where those usable samples also all
     share one NURBS patch, the ray's nearest hit on that patch (the exact tracer restricted to
     it; for a two-class ray, its exact first hit against every patch, if on that patch, else
     none) replaces the interpolated hit point and normal - where it lies within
@@ -418,7 +418,7 @@ def verified_miss(data, cell, tol):
 def newton_eligible(data, cell, pc, opt):
     """Rules 12 and 13 both apply to the ray (a mirror, its usable samples reflect once off
     one NURBS patch)."""
-    return bool(getattr(opt, "mirror_newton", False) and getattr(opt, "mirror_normal", False)
+    return bool(getattr(opt, "mirror_rays", "interpolate") == "newton"
                 and data.mirror and reflects_once(data, cell, pc)
                 and one_patch(data, cell, pc) is not None)
 
@@ -439,7 +439,7 @@ def answer_ri(data, cell, pc, o, d, tmax, opt, first=None):
     tol = getattr(opt, "max_error_deg", None)
     if tol is not None and not within_tolerance(data, cell, tol):
         traced = Answer(TRACED, WHY_TOLERANCE, info={"pc": pc, "tolerance": True})
-        if not (getattr(opt, "mirror_newton", False) and getattr(opt, "mirror_normal", False)
+        if not (getattr(opt, "mirror_rays", "interpolate") == "newton"
                 and data.mirror and calm(data, cell, first is not None)):
             return traced
         if getattr(opt, "path_identity", False) and not same_path(data, cell, pc):
@@ -557,10 +557,11 @@ def answer_untested(data, cell, pc, o, d, tmax, opt, first=None):
     blend = lod > MIN_BLEND_NORM and lnm > MIN_BLEND_NORM
     if not few and not cut and blend:
         worst = max([BILINEAR, qkind] + [kind[k] for k in range(4) if ok[k]])
-        once = reflects_once(data, cell, pc) if getattr(opt, "mirror_normal", False) \
+        once = reflects_once(data, cell, pc) \
+            if getattr(opt, "mirror_rays", "interpolate") != "interpolate" \
             and data.mirror else None
         exact_hit = None
-        if once and getattr(opt, "mirror_newton", False):
+        if once and getattr(opt, "mirror_rays", "interpolate") == "newton":
             patch = one_patch(data, cell, pc)
             exact_hit = None if patch is None else nearest_on_patch(data, patch, o, d, tmax,
                                                                      first)

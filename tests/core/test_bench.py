@@ -44,7 +44,7 @@ def test_tables_consistent(bench):
     rows = _csv(bench / "tables.csv")
     res = json.loads((bench / "results.json").read_text())
     # 2 scenes x 1 view x 6 rows, and the mirror's 2 rows of exact mirror hits
-    mirror_rows = {"interp_newton", "deeper_newton"}
+    mirror_rows = {"interp_reflect", "deeper_reflect"}
     assert len(rows) == len(res["tables"]) == 2 * len(ROWS) - len(mirror_rows)
     assert res["machine"]["cpu_count"] >= 1 and res["command"].startswith("riray bench --quick")
     by = {}
@@ -76,10 +76,13 @@ def test_tables_consistent(bench):
                                 int(ex["viewpoint_refine"]))
         # the angle threshold only ever adds traced rays to the no-threshold row
         assert int(rs["interp_angle"]["rays_traced"]) >= int(rs["interp"]["rays_traced"])
-        # exact mirror hits only ever answer rays the tolerance would trace
-        for tol, newton in (("interp_tol", "interp_newton"), ("deeper", "deeper_newton")):
-            if newton in rs:
-                assert int(rs[newton]["rays_traced"]) <= int(rs[tol]["rays_traced"])
+        # exact mirror hits (the default) only ever answer rays the tolerance would trace with
+        # mirror rays from the interpolated normal
+        for newton, reflect in (("interp_tol", "interp_reflect"), ("deeper", "deeper_reflect")):
+            if reflect in rs:
+                assert int(rs[newton]["rays_traced"]) <= int(rs[reflect]["rays_traced"])
+                assert int(rs[newton]["exact_mirror_hits"]) > 0 \
+                    == int(rs[reflect]["exact_mirror_hits"])
     # the JSON and the CSV hold the same numbers
     for j, r in zip(res["tables"], rows):
         assert (j["scene"], j["view"], j["row"]) == (r["scene"], r["view"], r["row"])

@@ -463,9 +463,8 @@ def test_read_only_output_folder_refused_first(files, tmp_path, capsys, monkeypa
 
 
 def test_mirror_rays_options():
-    """--mirror-rays picks the mirror rule: reflect (the default) and newton both answer from
-    the normal, newton with exact hits; interpolate is the paper's blend. Exact hits without
-    the normal rule are refused."""
+    """--mirror-rays picks the mirror rule: newton (the default: exact hits), reflect (the
+    interpolated normal) or interpolate (the paper's blend); other values are refused."""
     from riray.cli import _query_options, build_parser
     from riray.ritree.query import QueryOptions
     got = {}
@@ -473,8 +472,8 @@ def test_mirror_rays_options():
         argv = ["render", "teapot", "--tree", "t.rit", "--out", "x"]
         args = build_parser().parse_args(argv + ([] if mode is None else ["--mirror-rays", mode]))
         opt = _query_options(args)
-        got[mode] = (opt.mirror_normal, opt.mirror_newton)
-    assert got == {None: (True, False), "reflect": (True, False), "newton": (True, True),
-                   "interpolate": (False, False)}
-    with pytest.raises(ValueError, match="mirror_newton needs mirror_normal"):
-        QueryOptions(mirror_normal=False, mirror_newton=True).validate()
+        got[mode] = opt.mirror_rays
+    assert got == {None: "newton", "reflect": "reflect", "newton": "newton",
+                   "interpolate": "interpolate"}
+    with pytest.raises(ValueError, match="mirror_rays must be one of"):
+        QueryOptions(mirror_rays="blend").validate()

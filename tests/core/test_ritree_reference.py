@@ -48,7 +48,7 @@ from riray.scene.samples import build
 def paper(**kw) -> QueryOptions:
     """The paper's rules (no baked-error tolerance, interpolated mirror rays) with options
     ``kw``."""
-    return QueryOptions(**{"max_error_deg": None, "mirror_normal": False, **kw})
+    return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate", **kw})
 
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
@@ -84,15 +84,14 @@ OPTIONS = {
     "tolerance_angle20": QueryOptions(angle_deg=20.0, max_error_deg=4.0),
     "path": paper(angle_deg=None, path_identity=True),
     "tolerance_path": QueryOptions(angle_deg=None, max_error_deg=2.0, path_identity=True),
-    "mirror_normal": paper(angle_deg=None, mirror_normal=True),
-    "mirror_normal_angle20": paper(angle_deg=20.0, extrapolation=0.25, mirror_normal=True),
+    "mirror_normal": paper(angle_deg=None, mirror_rays="reflect"),
+    "mirror_normal_angle20": paper(angle_deg=20.0, extrapolation=0.25, mirror_rays="reflect"),
     "tolerance_mirror_normal": QueryOptions(angle_deg=None, max_error_deg=2.0,
-                                            mirror_normal=True),
-    "mirror_newton": paper(angle_deg=None, mirror_normal=True, mirror_newton=True),
-    "tolerance_mirror_newton": QueryOptions(angle_deg=None, max_error_deg=2.0,
-                                            mirror_normal=True, mirror_newton=True),
+                                            mirror_rays="reflect"),
+    "mirror_newton": paper(angle_deg=None, mirror_rays="newton"),
+    "tolerance_mirror_newton": QueryOptions(angle_deg=None, max_error_deg=2.0),   # the default
     "tolerance_path_mirror_newton": QueryOptions(angle_deg=None, max_error_deg=1.0,
-                                                 path_identity=True, mirror_newton=True),
+                                                 path_identity=True),
 }
 
 # Cases: scene, camera baked for, BakeParams, max_events override, extra cameras whose rays are

@@ -34,7 +34,7 @@ from riray.scene.model import ObjectMaterial, Patch, RenderSettings, Scene, Spec
 def paper(**kw) -> QueryOptions:
     """The paper's rules (no baked-error tolerance, mirror rays blended) with options
     ``kw``."""
-    return QueryOptions(**{"max_error_deg": None, "mirror_normal": False, **kw})
+    return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate", **kw})
 
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")

@@ -43,7 +43,7 @@ from riray.scene.model import ObjectMaterial, Patch, RenderSettings, Scene, Spec
 def paper(**kw) -> QueryOptions:
     """The paper's rules (no baked-error tolerance, mirror rays blended) with options
     ``kw``."""
-    return QueryOptions(**{"max_error_deg": None, "mirror_normal": False, **kw})
+    return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate", **kw})
 
 
 # Interpolation exactness on affine ray maps (mirror, slab) is checked without the pairwise
@@ -318,7 +318,7 @@ def test_mirror_normal_rule_is_exact_on_a_plane(mirror):
     the samples' quantization (measured: up to 4.7e-5 rad on the side faces)."""
     st, tree = mirror
     o, d = mirror_queries(tree, 20000, 1)
-    res, ans, why, _ = TreeQuery(tree, st, paper(angle_deg=None, mirror_normal=True))(o, d)
+    res, ans, why, _ = TreeQuery(tree, st, paper(angle_deg=None, mirror_rays="reflect"))(o, d)
     ex = st.object_function(o, d)
     check_answers(res, ans, why)
     m = interpolated(ans) & ex.hit

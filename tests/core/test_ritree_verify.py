@@ -40,7 +40,7 @@ from riray.scene.samples import build
 def paper(**kw) -> QueryOptions:
     """The paper's rules (no baked-error tolerance, mirror rays blended) with options
     ``kw``."""
-    return QueryOptions(**{"max_error_deg": None, "mirror_normal": False, **kw})
+    return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate", **kw})
 
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
@@ -267,25 +267,24 @@ def test_refinement_does_not_follow_the_render_time_default(sphere_loose, monkey
 
 def test_viewpoint_errors_do_not_follow_the_render_time_mirror_rule(mirror, monkeypatch):
     """The bake measures its viewpoint cells with one mirror rule (verify's pinned
-    MEASURE_MIRROR_NORMAL, recorded in the tree's meta), whatever QueryOptions' default is: a
+    MEASURE_MIRROR_RAYS, recorded in the tree's meta), whatever QueryOptions' default is: a
     tree's stored errors do not depend on the defaults of the code that baked it."""
     import dataclasses
     from riray.ritree import query, verify
     st, tree = mirror
-    assert tree.meta["viewpoint_mirror_rays"] == ("reflect" if verify.MEASURE_MIRROR_NORMAL
-                                                  else "interpolate")
+    assert tree.meta["viewpoint_mirror_rays"] == verify.MEASURE_MIRROR_RAYS == "reflect"
     cams = [(st.scene.cameras[0], SIZE, SIZE)]
     err, flags = verify.viewpoint_errors(tree, st, cams)
     fields = [f.name for f in dataclasses.fields(query.QueryOptions)]
     defaults = list(query.QueryOptions.__init__.__defaults__)
-    defaults[fields.index("mirror_normal")] = not verify.MEASURE_MIRROR_NORMAL
+    defaults[fields.index("mirror_rays")] = "interpolate"
     monkeypatch.setattr(query.QueryOptions.__init__, "__defaults__", tuple(defaults))
     again, flags2 = verify.viewpoint_errors(tree, st, cams)
     assert np.isfinite(err).sum() >= 4
     assert np.array_equal(err, again, equal_nan=True) and np.array_equal(flags, flags2)
     # and the two rules do measure differently here (so the check above can fail)
     other = TreeQuery(tree, st, paper(angle_deg=None,
-                                      mirror_normal=not verify.MEASURE_MIRROR_NORMAL))
-    mine = TreeQuery(tree, st, paper(angle_deg=None, mirror_normal=verify.MEASURE_MIRROR_NORMAL))
+                                      mirror_rays="interpolate"))
+    mine = TreeQuery(tree, st, paper(angle_deg=None, mirror_rays=verify.MEASURE_MIRROR_RAYS))
     o, d, _ = verify.test_rays(tree, vp_cells(tree), cams)
     assert not np.array_equal(other(o, d)[0].out_dir, mine(o, d)[0].out_dir)
