@@ -35,7 +35,7 @@ import numpy as np
 from ..rowops import all_last, any_last, norm3
 from ..trace.objectfn import ObjectRays, fresnel_dielectric, reflect
 from ..trace.patches import T_MIN_REL, PatchHit
-from ..trace.polish import Seeds, polish_hits
+from ..trace.polish import Seeds, keep_near, polish_hits
 from .extras import extra_weights
 from .interp import (BILINEAR, EXTRA, EXTRAPOLATED, FAIL, TRIANGLE, UNIT_CORNERS,
                      bilinear_weights, cell_weights, drop_outlier, drop_outlier_units, far_pairs,
@@ -809,10 +809,7 @@ class TreeQuery:
         exact first hit already, that hit if it is on the seed's patch (none if on another),
         else Newton's from the seeds."""
         lim = NEWTON_MAX_MOVE_REL * self.tree.diag, np.cos(np.radians(NEWTON_MAX_TURN_DEG))
-        h = PatchHit(hit=np.zeros(len(rows), bool), t=np.full(len(rows), np.inf),
-                     point=np.zeros((len(rows), 3)), normal=np.zeros((len(rows), 3)),
-                     patch=np.full(len(rows), -1, np.int64), cls=np.full(len(rows), -1, np.int64),
-                     u=np.zeros(len(rows)), v=np.zeros(len(rows)))
+        h = PatchHit.misses(len(rows))
         got = self._known.of(rows)
         rest = np.ones(len(rows), bool)
         if got is not None:
@@ -820,7 +817,7 @@ class TreeQuery:
             rest[k] = False
             same = kh.hit & (kh.patch == seeds.patch[k])
             h.put(k[same], kh.take(np.flatnonzero(same)))
-            _keep_near(h, d, seeds, *lim)
+            keep_near(h, d, seeds, *lim)
         r = np.flatnonzero(rest)
         if len(r):
             sub = Seeds(*(None if x is None else x[r] for x in
@@ -884,18 +881,6 @@ class TreeQuery:
             cos_i = -np.einsum("ij,ij->i", dd, nm)
             res.fresnel[rows] = fresnel_dielectric(cos_i, np.full(len(rows), 1.0 / self.material.ior))
             res.refl_dir[rows] = reflect(dd, nm)
-
-
-def _keep_near(h: PatchHit, d, seeds: Seeds, max_move: float, min_cos: float) -> None:
-    """Drop (in place) the hits of ``h`` farther than ``max_move`` from the seeds' points or
-    whose normal, turned to face the rays ``d``, makes a cosine below ``min_cos`` with the
-    seeds' normals."""
-    k = np.flatnonzero(h.hit)
-    nk = h.normal[k]
-    facing = np.einsum("ij,ij->i", np.where((np.einsum("ij,ij->i", nk, d[k]) > 0)[:, None],
-                                            -nk, nk), seeds.normal[k])
-    far = (facing < min_cos) | (np.linalg.norm(h.point[k] - seeds.point[k], axis=1) > max_move)
-    h.hit[k[far]] = False
 
 
 def _empty_result(n, o, d) -> ObjectRays:

@@ -104,6 +104,13 @@ class PatchHit:
     u: np.ndarray
     v: np.ndarray
 
+    @classmethod
+    def misses(cls, n: int) -> "PatchHit":
+        """``n`` rays that hit nothing (yet)."""
+        return cls(hit=np.zeros(n, bool), t=np.full(n, np.inf), point=np.zeros((n, 3)),
+                   normal=np.zeros((n, 3)), patch=np.full(n, -1, np.int64),
+                   cls=np.full(n, -1, np.int64), u=np.zeros(n), v=np.zeros(n))
+
     def take(self, idx) -> "PatchHit":
         """The rows ``idx`` of every array."""
         return PatchHit(**{k: v[idx] for k, v in self.__dict__.items()})
@@ -253,9 +260,7 @@ class PatchTracer:
         tmin = np.full(n, t_floor) if tmin is None else np.maximum(tmin, t_floor)
         tmax = np.full(n, np.inf) if tmax is None else np.asarray(tmax, dtype=np.float64)
         best_t = tmax.copy()
-        res = PatchHit(hit=np.zeros(n, bool), t=np.full(n, np.inf), point=np.zeros((n, 3)),
-                       normal=np.zeros((n, 3)), patch=np.full(n, -1, np.int64),
-                       cls=np.full(n, -1, np.int64), u=np.zeros(n), v=np.zeros(n))
+        res = PatchHit.misses(n)
         if n == 0:
             return res
         if self.meshes is not None:

@@ -64,9 +64,7 @@ def _polish(tracer: PatchTracer, o, d, seeds: Seeds, max_move: float, min_cos: f
     (u, v): NURBS parameters."""
     o, d = np.asarray(o, np.float64), np.asarray(d, np.float64)
     n = len(o)
-    res = PatchHit(hit=np.zeros(n, bool), t=np.full(n, np.inf), point=np.zeros((n, 3)),
-                   normal=np.zeros((n, 3)), patch=np.full(n, -1, np.int64),
-                   cls=np.full(n, -1, np.int64), u=np.zeros(n), v=np.zeros(n))
+    res = PatchHit.misses(n)
     patch = np.asarray(seeds.patch, np.int64)
     live = np.flatnonzero((patch >= 0) & (tracer.piece_base[np.maximum(patch, 0)] >= 0))
     dom = tracer.uv_domain[patch[live]]
@@ -95,17 +93,24 @@ def _polish(tracer: PatchTracer, o, d, seeds: Seeds, max_move: float, min_cos: f
                                & (v >= dom[:, 2]) & (v <= dom[:, 3]))
         live, u, v = live[again], u[again], v[again]
     k = np.flatnonzero(res.hit)
-    nk = res.normal[k]
-    facing = np.einsum("ij,ij->i", np.where((np.einsum("ij,ij->i", nk, d[k]) > 0)[:, None],
-                                            -nk, nk), seeds.normal[k])
-    keep = (res.t[k] > tmin[k]) & (res.t[k] < tmax[k]) & (facing >= min_cos) \
-        & (np.linalg.norm(res.point[k] - seeds.point[k], axis=1) <= max_move)
-    drop = k[~keep]
-    res.hit[drop] = False
-    res.t[drop] = np.inf
-    res.patch[drop] = -1
+    res.hit[k[(res.t[k] <= tmin[k]) | (res.t[k] >= tmax[k])]] = False
+    keep_near(res, d, seeds, max_move, min_cos)
+    res.t[~res.hit] = np.inf
+    res.patch[~res.hit] = -1
     res.cls[res.hit] = tracer.class_of[res.patch[res.hit]]
     return res
+
+
+def keep_near(h: PatchHit, d, seeds: Seeds, max_move: float, min_cos: float) -> None:
+    """Drop (in place: ``hit`` False) the hits of ``h`` farther than ``max_move`` from the
+    seeds' points or whose normal, turned to face the rays ``d``, makes a cosine below
+    ``min_cos`` with the seeds' normals."""
+    k = np.flatnonzero(h.hit)
+    nk = h.normal[k]
+    facing = np.einsum("ij,ij->i", np.where((np.einsum("ij,ij->i", nk, d[k]) > 0)[:, None],
+                                            -nk, nk), seeds.normal[k])
+    far = (facing < min_cos) | (np.linalg.norm(h.point[k] - seeds.point[k], axis=1) > max_move)
+    h.hit[k[far]] = False
 
 
 def _piece_of(tracer, patch, u, v):
