@@ -11,8 +11,9 @@ Method (after Martin et al.'s practical NURBS ray tracing, adapted to numpy):
    scalar nets and the weights), which also serves the end-on hull test; each iteration then
    evaluates three scalar polynomials. Converged roots inside the sub-patch are hits; the
    nearest wins.
-3. Fallback: a pair whose Newton run did not converge although its seed says the ray crosses
-   the sub-patch is split into four children, which are retried (a few levels deep).
+3. Fallback: a pair whose Newton run found no root in its net, or a grazing root whose twin
+   (the ray's other nearby crossing) the twin search did not find, is split into four
+   children, retried from their midpoints (a few levels deep).
 4. Pairs are processed nearest box first; once a ray has a hit, candidates whose boxes start
    beyond it are dropped (in small batches, where few far pairs exist, all pairs go at once).
 Mesh patches (triangles) go through the triangle tracer and compete on t.
@@ -60,6 +61,9 @@ FALLBACK_LEVELS = 2
 # this factor and margin before use.
 TWIN_CONE_SAFETY = 1.5
 TWIN_CONE_MARGIN_DEG = 1.0
+# A twin run that converged at least this far (net-local parameter units) from the first root
+# found a second root, not the first one again.
+TWIN_DISTINCT = 1e-6
 # Child boxes in the retry are padded by this fraction of the object diagonal (rounding).
 BOX_PAD_REL = 1e-12
 # Self-intersection guard: hits closer than this (relative to the object diagonal) are ignored.
@@ -119,6 +123,20 @@ class PatchHit:
         """Overwrite rows ``rows`` with ``other`` (len(rows) hits), in place."""
         for k, v in self.__dict__.items():
             v[rows] = getattr(other, k)
+
+
+@dataclass
+class _Nets:
+    """The nets of a batch of (ray, net) pairs: sub-patch nets or their de Casteljau children.
+    ``box`` = (s0, s1, t0, t1) is the rectangle a net covers in its sub-patch ``sp``'s local
+    coordinates."""
+
+    ctrl: np.ndarray      # (n, p+1, q+1, 4) homogeneous
+    sp: np.ndarray        # (n,) sub-patch index within the group
+    box: np.ndarray       # (n, 4)
+
+    def take(self, idx) -> "_Nets":
+        return _Nets(self.ctrl[idx], self.sp[idx], self.box[idx])
 
 
 @dataclass
@@ -317,40 +335,44 @@ class PatchTracer:
             if len(sel) == 0:
                 continue
             sp = loc[sel]
-            box = np.tile(np.array([0.0, 1.0, 0.0, 1.0]), (len(sp), 1))
-            self._newton_batch(o, d, tmin, best_t, res, ray[sel], grp.ctrl[sp], grp, sp, box,
-                               FALLBACK_LEVELS)
+            nets = _Nets(grp.ctrl[sp], sp, np.tile(np.array([0.0, 1.0, 0.0, 1.0]), (len(sp), 1)))
+            self._newton_batch(o, d, tmin, best_t, res, ray[sel], nets, grp, FALLBACK_LEVELS)
 
-    def _newton_batch(self, o, d, tmin, best_t, res, r, ctrl, grp, sp, box, levels):
-        """Newton on control nets ``ctrl`` (each covering the rectangle ``box`` = (s0, s1, t0, t1)
-        of sub-patch ``sp``'s local coordinates) for rays ``r``; records hits nearer than best_t.
+    def _newton_batch(self, o, d, tmin, best_t, res, r, nets: _Nets, grp, levels):
+        """Newton on ``nets`` for rays ``r``; records hits nearer than best_t.
 
-        Pairs without a root, or with a root outside the net, are split by de Casteljau into
-        four children, kept where the ray still meets their boxes."""
+        Pairs without a root, with a root outside the net, or with a grazing root (its net may
+        hold a twin) are split by de Casteljau into four children, kept where the ray still
+        meets their boxes."""
         if len(r) == 0:
             return
         ro, rd = o[r], d[r]
-        proj = _project(ctrl, ro, rd)
+        proj = _project(nets.ctrl, ro, rd)
         meet = _hull_meets(proj)
         if not meet.all():
-            r, ctrl, sp, box, ro, rd, proj = (x[meet] for x in (r, ctrl, sp, box, ro, rd, proj))
+            r, ro, rd, proj = (x[meet] for x in (r, ro, rd, proj))
+            nets = nets.take(meet)
             if len(r) == 0:
                 return
         self.stats["pairs"] += len(r)
-        s, t = _seed(ctrl, ro, rd)
+        ctrl = nets.ctrl
+        if levels == FALLBACK_LEVELS:
+            s, t = _seed(ctrl, ro, rd)
+        else:
+            # a retried net's corner seed led Newton astray once (a grazing ray's corner-triangle
+        # hit can lie nearer the ray's other crossing, outside the net): start from the middle
+            s, t = np.full(len(r), 0.5), np.full(len(r), 0.5)
         ok = self._newton(proj, ctrl.shape[1] - 1, ctrl.shape[2] - 1, s, t)
         in_net = (s >= -PARAM_MARGIN) & (s <= 1 + PARAM_MARGIN) & (t >= -PARAM_MARGIN) \
             & (t <= 1 + PARAM_MARGIN)
         # no root at all, or a root outside the net (another root may hide in it: a grazing
         # ray, or a seed from outside the corner triangles)
         retry = ~ok | ~in_net
-        grazing = self._accept(o, d, tmin, best_t, res, r, ctrl, proj, grp, sp, box, ok, s, t,
-                               twin=True)
+        grazing = self._accept(o, d, tmin, best_t, res, r, nets, proj, grp, ok, s, t, twin=True)
         # a grazing root may have a twin in the net that the twin search missed
         retry |= grazing
         if levels > 0:
-            self._subdivide(o, d, tmin, best_t, res, r, ctrl, grp, sp, box, levels,
-                            np.flatnonzero(retry))
+            self._subdivide(o, d, tmin, best_t, res, r, nets, grp, levels, np.flatnonzero(retry))
 
     def _newton(self, proj, p, q, s, t):
         """Newton iterations in place on (s, t) for nets of degree (p, q) projected onto their
@@ -406,7 +428,7 @@ class PatchTracer:
         t[act] = tt
         return ok
 
-    def _accept(self, o, d, tmin, best_t, res, r, ctrl, proj, grp, sp, box, ok, s, t, twin):
+    def _accept(self, o, d, tmin, best_t, res, r, nets: _Nets, proj, grp, ok, s, t, twin):
         """Record converged roots that lie inside their Bezier piece and beat best_t.
 
         With ``twin``, grazing roots get a second Newton run for their twin: two roots of one
@@ -416,7 +438,9 @@ class PatchTracer:
         the next hit of a ray leaving the surface). A root counts as the ray's start, not a hit,
         when the surface crossing it stands for lies at or before tmin (``_crossing_behind``).
         ``proj``: the nets projected onto their rays' planes (``_project``), for the twin runs.
-        Returns the mask of pairs whose root is grazing (their net may hold a second root)."""
+        Returns the mask of pairs whose root is grazing (their net may hold a second root) and
+        whose twin run, if any, did not find a second root."""
+        ctrl, sp, box = nets.ctrl, nets.sp, nets.box
         s_sub = box[:, 0] + (box[:, 1] - box[:, 0]) * s
         t_sub = box[:, 2] + (box[:, 3] - box[:, 2]) * t
         ps = grp.ps0[sp] + (grp.ps1[sp] - grp.ps0[sp]) * s_sub
@@ -470,8 +494,11 @@ class PatchTracer:
         if len(gi) == 0:
             return grazing
         ok2 = self._newton(proj[gi], ctrl.shape[1] - 1, ctrl.shape[2] - 1, s2, t2)
-        self._accept(o, d, tmin, best_t, res, r[gi], ctrl[gi], proj[gi], grp, sp[gi], box[gi],
-                     ok2, s2, t2, twin=False)
+        self._accept(o, d, tmin, best_t, res, r[gi], nets.take(gi), proj[gi], grp, ok2, s2, t2,
+                     twin=False)
+        # a twin run that converged away from the first root found the twin (in this net or a
+        # neighbour's); one that failed or came back to the first root settles nothing
+        grazing[gi[ok2 & (np.hypot(s2 - s[gi], t2 - t[gi]) > TWIN_DISTINCT)]] = False
         return grazing
 
     def _record(self, res, best_t, grp, spf, rr, tt, P, Ps, Pt, nrm, ln, s_sub, t_sub):
@@ -497,32 +524,33 @@ class PatchTracer:
         res.u[rr] = u
         res.v[rr] = v
 
-    def _subdivide(self, o, d, tmin, best_t, res, r, ctrl, grp, sp, box, levels, idx):
-        """Split nets ``idx`` into four children and retry those whose boxes the ray meets."""
+    def _subdivide(self, o, d, tmin, best_t, res, r, nets: _Nets, grp, levels, idx):
+        """Split nets ``idx`` into four children and retry those whose boxes the ray meets.
+        The children start Newton from their midpoints (``_newton_batch``)."""
         if len(idx) == 0:
             return
         self.stats["fallback_pairs"] += len(idx)
-        left, right = bz.split(ctrl[idx], 1)
+        left, right = bz.split(nets.ctrl[idx], 1)
         kids = []
         for half, (a0, a1) in ((left, (0.0, 0.5)), (right, (0.5, 1.0))):
             lo_v, hi_v = bz.split(half, 2)
             for net, (b0, b1) in ((lo_v, (0.0, 0.5)), (hi_v, (0.5, 1.0))):
                 kids.append((net, a0, a1, b0, b1))
-        bx = box[idx]
-        nets = np.concatenate([k[0] for k in kids])
+        bx = nets.box[idx]
+        ctrl = np.concatenate([k[0] for k in kids])
         rep = np.tile(idx, 4)
         ws = bx[:, 1] - bx[:, 0]
         wt = bx[:, 3] - bx[:, 2]
         kbox = np.concatenate([np.stack([bx[:, 0] + k[1] * ws, bx[:, 0] + k[2] * ws,
                                          bx[:, 2] + k[3] * wt, bx[:, 2] + k[4] * wt], 1)
                                for k in kids])
-        pts = nets[..., :3] / nets[..., 3:]
+        pts = ctrl[..., :3] / ctrl[..., 3:]
         lo = pts.min(axis=(1, 2)) - BOX_PAD_REL * self.diag
         hi = pts.max(axis=(1, 2)) + BOX_PAD_REL * self.diag
         rr = r[rep]
-        meet = _ray_box(o[rr], d[rr], lo, hi, tmin[rr], best_t[rr])
-        self._newton_batch(o, d, tmin, best_t, res, rr[meet], nets[meet], grp, sp[rep][meet],
-                           kbox[meet], levels - 1)
+        meet = np.flatnonzero(_ray_box(o[rr], d[rr], lo, hi, tmin[rr], best_t[rr]))
+        kids = _Nets(ctrl[meet], nets.sp[rep[meet]], kbox[meet])
+        self._newton_batch(o, d, tmin, best_t, res, rr[meet], kids, grp, levels - 1)
 
 
 # ---------------------------------------------------------------------- helpers
