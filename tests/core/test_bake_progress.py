@@ -12,8 +12,10 @@ import pytest
 from riray.geometry.primitives import sphere
 from riray.render.exact import SceneTracer
 from riray.ritree import bake as bake_mod
+from riray.ritree.region import region_for_cameras
 from riray.ritree.tree import BakeParams
 from riray.scene.model import ObjectMaterial, Patch, RenderSettings, Scene, SpecularObject
+from riray.scene.samples import build
 
 EXTRA_COST = 2
 
@@ -61,3 +63,38 @@ def test_progress_follows_the_work(work_clock):
     left = total - done
     known = extra & (share > share[extra].min()) & (share <= 0.9)
     assert np.all(np.abs(eta - left)[known] < 0.25 * left[known])
+
+
+def _clocked_bake(work_clock, st, params, region=None):
+    """Bake on the work clock: (work done at each report, fractions, messages), total work."""
+    f = st.object_function
+
+    def counted(o, d, tmax=None, first=None):
+        work_clock["now"] += len(o) * (EXTRA_COST if work_clock["kind"] == "extra" else 1)
+        return f(o, d, tmax, first)
+    st.object_function = counted
+    calls = []
+    bake_mod.bake(st, params, region, workers=1,
+                  progress=lambda frac, msg: calls.append((work_clock["now"], frac, msg)))
+    done, frac = np.array([c[0] for c in calls], float), np.array([c[1] for c in calls])
+    return done / work_clock["now"], frac, [c[2] for c in calls]
+
+
+def test_refinement_passes_progress_follows_the_work(work_clock):
+    """A camera bake's refinement passes grow (more viewpoint cells split at each level): the
+    fraction keeps following the work, neither sitting still while a pass larger than the
+    last runs (it did: it held until the work caught up with an estimate that assumed equal
+    passes) nor far ahead of it."""
+    st = SceneTracer(build("glass_sphere"))
+    params = BakeParams(viewpoint_depth=2, direction_depth=3, viewpoint_refine=2)
+    region = region_for_cameras(st, params, [st.scene.camera("close")], 60, 60)
+    share, frac, msg = _clocked_bake(work_clock, st, params, region)
+    passes = {m.split("(pass ")[1][0] for m in msg if "(pass " in m}
+    assert passes == {"1", "2", "3"}, passes            # the bake did refine twice
+    assert np.all(np.diff(frac) >= 0) and frac[-1] == pytest.approx(1.0)
+    late = share >= 0.2
+    assert np.abs(frac - share)[late].max() < 0.2, np.c_[share, frac][late][::20]
+    # the longest stretch of work during which the fraction does not move
+    moved = np.flatnonzero(np.diff(frac) > 1e-3) + 1
+    marks = np.concatenate([[0.0], share[moved], [1.0]])
+    assert np.diff(marks).max() < 0.15, np.diff(marks).max()
