@@ -176,6 +176,7 @@ class _Progress:
         self._counts()
 
     def _counts(self):
+        """Zero the open pass's counts and plan."""
         self.done = {"level": 0, "extra": 0}          # traced in this pass
         self.plan = {"level": 0.0, "extra": None}     # expected in this pass
         self.cells = self.level_start = 0
