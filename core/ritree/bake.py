@@ -241,7 +241,8 @@ class _Progress:
             cost = per_tree if per_tree is not None else \
                 (now - self.pass_t0 + left) / max(self.trees, 1)
             for k in range(future):
-                trees *= growth if (k or len(self.pass_trees) > 1) else 1.0
+                after_uniform = k == 0 and len(self.pass_trees) == 1   # the first refinement
+                trees *= 1.0 if after_uniform else growth
                 left += between + cost * trees
         return left + (between if self.open else 0.0)     # the last measurement
 

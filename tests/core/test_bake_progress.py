@@ -36,37 +36,9 @@ def work_clock(monkeypatch):
     return clock
 
 
-def test_progress_follows_the_work(work_clock):
-    ball = SpecularObject("ball", [Patch("s", 0, surface=sphere((0.0, 0.0, 0.0), 0.5))],
-                          ObjectMaterial(kind="glass", ior=1.5))
-    st = SceneTracer(Scene(object=ball, render=RenderSettings(max_events=8)))
-    f = st.object_function
-
-    def counted(o, d, tmax=None):
-        work_clock["now"] += len(o) * (EXTRA_COST if work_clock["kind"] == "extra" else 1)
-        return f(o, d, tmax)
-    st.object_function = counted
-    calls = []
-    bake_mod.bake(st, BakeParams(viewpoint_depth=1, direction_depth=4), workers=1,
-                  progress=lambda frac, msg: calls.append((work_clock["now"], frac, msg)))
-    total = work_clock["now"]
-    done, frac = np.array([c[0] for c in calls], float), np.array([c[1] for c in calls])
-    assert np.all(np.diff(frac) >= 0) and frac[-1] == pytest.approx(1.0)
-    extra = np.array(["extra samples" in c[2] for c in calls])
-    assert extra.any()
-    share = done / total
-    assert share[extra].min() < 0.5 < share[extra].max()       # the extras are most of it
-    late = share >= 0.2                     # the first levels cannot know what follows
-    assert np.abs(frac - share)[late].max() < 0.15, np.c_[share, frac][late][::50]
-    # once the extra samples run, their amount is known: the ETA is within 25 % of the work left
-    eta = done / np.maximum(frac, 1e-9) - done
-    left = total - done
-    known = extra & (share > share[extra].min()) & (share <= 0.9)
-    assert np.all(np.abs(eta - left)[known] < 0.25 * left[known])
-
-
 def _clocked_bake(work_clock, st, params, region=None):
-    """Bake on the work clock: (work done at each report, fractions, messages), total work."""
+    """Bake on the work clock: (share of the whole bake's work done at each report, the
+    fractions reported, their messages)."""
     f = st.object_function
 
     def counted(o, d, tmax=None, first=None):
@@ -78,6 +50,26 @@ def _clocked_bake(work_clock, st, params, region=None):
                   progress=lambda frac, msg: calls.append((work_clock["now"], frac, msg)))
     done, frac = np.array([c[0] for c in calls], float), np.array([c[1] for c in calls])
     return done / work_clock["now"], frac, [c[2] for c in calls]
+
+
+def test_progress_follows_the_work(work_clock):
+    ball = SpecularObject("ball", [Patch("s", 0, surface=sphere((0.0, 0.0, 0.0), 0.5))],
+                          ObjectMaterial(kind="glass", ior=1.5))
+    st = SceneTracer(Scene(object=ball, render=RenderSettings(max_events=8)))
+    share, frac, msg = _clocked_bake(work_clock, st, BakeParams(viewpoint_depth=1,
+                                                                direction_depth=4))
+    assert np.all(np.diff(frac) >= 0) and frac[-1] == pytest.approx(1.0)
+    extra = np.array(["extra samples" in m for m in msg])
+    assert extra.any()
+    assert share[extra].min() < 0.5 < share[extra].max()       # the extras are most of it
+    late = share >= 0.2                     # the first levels cannot know what follows
+    assert np.abs(frac - share)[late].max() < 0.15, np.c_[share, frac][late][::50]
+    # once the extra samples run, their amount is known: the ETA is within 25 % of the work
+    # left (both as shares of the whole bake's work)
+    eta = share / np.maximum(frac, 1e-9) - share
+    left = 1.0 - share
+    known = extra & (share > share[extra].min()) & (share <= 0.9)
+    assert np.all(np.abs(eta - left)[known] < 0.25 * left[known])
 
 
 def test_refinement_passes_progress_follows_the_work(work_clock):
