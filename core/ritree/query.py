@@ -587,8 +587,11 @@ class TreeQuery:
         that only an exact hit may answer (``_must``): the bake's errors are the blend's, which
         that hit replaces. Where the object's outline crosses them (BOUNDARY), only if the ray's
         exact first hit is known (a two-class ray): hit or miss is then not a guess. A leaf or
-        cell the bake did not measure (NaN) or saw answered wrongly (inf) proves nothing: the
-        ray is traced."""
+        cell the bake saw answered wrongly (inf) proves nothing: the ray is traced; one it did
+        not measure (NaN: its midpoint changed class at the maximum depth, or no test ray was
+        interpolated) is traced too, unless the exact first hit is known: its flags, which the
+        bake sets from the traced corners and test rays whether or not it could measure, are
+        then all the evidence the exact hit needs."""
         tol, tree = self.opt.max_error_deg, self.tree
         s_ok = np.all(tree.dir_err[s_leaf] <= tol, axis=1)
         ok = s_ok[set_of[go]] & (tree.vp_err[loc.vnode[go]] <= tol)
@@ -596,9 +599,10 @@ class TreeQuery:
             flags = np.bitwise_or.reduce(tree.dir_flags[s_leaf], axis=1)[set_of[go]] \
                 | tree.vp_flags[loc.vnode[go]]
             exact = known.pos[loc.ray[go]] >= 0
-            measured = np.all(np.isfinite(tree.dir_err[s_leaf]), axis=1)[set_of[go]] \
-                & np.isfinite(tree.vp_err[loc.vnode[go]])
-            calm = ~ok & measured & (flags & PATH_CHANGE == 0) \
+            s_err, c_err = tree.dir_err[s_leaf], tree.vp_err[loc.vnode[go]]
+            measured = np.all(np.isfinite(s_err), axis=1)[set_of[go]] & np.isfinite(c_err)
+            seen_wrong = np.any(np.isinf(s_err), axis=1)[set_of[go]] | np.isinf(c_err)
+            calm = ~ok & (measured | (exact & ~seen_wrong)) & (flags & PATH_CHANGE == 0) \
                 & ((flags & BOUNDARY == 0) | exact)
             self._must[loc.ray[go[calm]]] = True
             ok |= calm

@@ -77,8 +77,9 @@ Rules (policy "ri"; paper sections 4.1-4.3, 5.1-5.4), per ray:
     NEWTON_MAX_MOVE_REL of the box diagonal of the interpolated point and its normal, turned
     to face the ray, within NEWTON_MAX_TURN_DEG of the interpolated one - and the ray leaves
     from it, mirrored about its normal. With the tolerance (rule 2b), a mirror ray outside it
-    whose leaves and cell have finite measured errors and carry no PATH_CHANGE, and no BOUNDARY
-    unless it is a two-class ray (its exact first hit known), is not traced there: it is
+    whose leaves and cell carry no PATH_CHANGE, and no BOUNDARY unless it is a two-class ray
+    (its exact first hit known), and have finite measured errors - or, for a two-class ray,
+    errors none of which is inf (NaN: not measured) - is not traced there: it is
     answered only by this rule's exact hit - traced (tolerance) where rules 12-13 do not
     apply or find no such hit; traced for its own reason where a later rule traces it.
 
@@ -423,13 +424,23 @@ def newton_eligible(data, cell, pc, opt):
                 and one_patch(data, cell, pc) is not None)
 
 
+def cell_errors(data, cell):
+    """The bake's measured errors of the ray's four leaves and its viewpoint cell (degrees)."""
+    t = data.tree
+    return [float(t.dir_err[lf]) for lf in cell.leaves] + [float(t.vp_err[cell.vnode])]
+
+
 def calm(data, cell, first_known):
-    """Rule 13's tolerance bypass: the bake measured a finite error in every leaf and the cell,
-    none carries PATH_CHANGE, nor BOUNDARY unless the ray's exact first hit is known."""
+    """Rule 13's tolerance bypass: none of the ray's leaves and its cell carries PATH_CHANGE,
+    nor BOUNDARY unless the ray's exact first hit is known; the bake measured a finite error
+    in every one of them, or, where the exact first hit is known, saw none answered wrongly
+    (no inf; NaN, not measured, is allowed)."""
     t = data.tree
     flags = [int(t.dir_flags[lf]) for lf in cell.leaves] + [int(t.vp_flags[cell.vnode])]
-    errs = [float(t.dir_err[lf]) for lf in cell.leaves] + [float(t.vp_err[cell.vnode])]
-    return all(math.isfinite(e) for e in errs) and not any(f & PATH_CHANGE for f in flags) \
+    errs = cell_errors(data, cell)
+    measured = all(math.isfinite(e) for e in errs) or \
+        (first_known and not any(math.isinf(e) for e in errs))
+    return measured and not any(f & PATH_CHANGE for f in flags) \
         and (first_known or not any(f & BOUNDARY for f in flags))
 
 
@@ -449,6 +460,7 @@ def answer_ri(data, cell, pc, o, d, tmax, opt, first=None):
         a = answer_untested(data, cell, pc, o, d, tmax, opt, first)
         if a.info.get("newton"):
             a.info["past_tolerance"] = True
+            a.info["unmeasured"] = not all(math.isfinite(float(e)) for e in cell_errors(data, cell))
         return a if a.ans == TRACED or a.info.get("newton") else traced
     return answer_untested(data, cell, pc, o, d, tmax, opt, first)
 

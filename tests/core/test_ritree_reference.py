@@ -263,6 +263,8 @@ def test_rules_are_exercised(cases):
                 paths["mirror newton hit"] += 1
                 if info.get("past_tolerance"):
                     paths["mirror newton hit past the tolerance"] += 1
+                    if info.get("unmeasured"):
+                        paths["mirror newton hit past the tolerance, unmeasured"] += 1
     print("answer kinds:", {f"{ANSWER_NAMES[a]}/{WHY_NAMES[w] or '-'}": n
                             for (a, w), n in sorted(kinds.items())})
     print("rule paths:", dict(sorted(paths.items())))
@@ -283,7 +285,8 @@ def test_rules_are_exercised(cases):
                   "direction-level outlier dropped, answered",
                   "viewpoint-level outlier dropped, answered", "unverified leaves skipped",
                   "hidden", "mirror normal", "mirror normal declined", "mirror newton hit",
-                  "mirror newton hit past the tolerance")
+                  "mirror newton hit past the tolerance",
+                  "mirror newton hit past the tolerance, unmeasured")
     missing = {p: paths[p] for p in need_paths if paths[p] < 3}
     assert not missing, f"rules too rarely reached: {missing}; all: {dict(paths)}"
 
