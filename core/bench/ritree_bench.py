@@ -9,7 +9,11 @@ identical-ray-tree rule); a sixth, *deeper*, is the default tolerance on a secon
 camera baked at ``deeper_tree``'s depths, against its own exact passes. On a mirror, whose
 default answers come from exact mirror hits (``--mirror-rays newton``), each tree also gets the
 default tolerance with mirror rays from the interpolated hit and normal (``--mirror-rays
-reflect``: rows *interp_reflect* and *deeper_reflect*). Columns: rays traced,
+reflect``: rows *interp_reflect* and *deeper_reflect*). A last row, *deeper_rules* (one pass),
+runs the deeper tree's default rules without the tolerance: the object pixels they trace or
+answer beyond the default tolerance (or with a wrong kind of answer: hit / miss, null) are the
+*floor* no render-time rule on that tree can go below. Columns: rays traced, the traced share
+of the object and that share plus the share answered beyond the tolerance,
 object-only and total CPU seconds (the paper's split, summed over a pass's shares) and a
 machine-independent work count - flat-sub-patch pairs solved by Newton and Newton iterations
 (tracing), samples gathered (interpolation: 16 per ray looked up in the tree, 2 more per ray
@@ -74,7 +78,7 @@ from .exact_bench import machine
 
 VIEWS = ("far", "close", "zoom")
 ROWS = ("exact", "interp", "interp_angle", "interp_tol", "interp_reflect", "raytree", "deeper",
-        "deeper_reflect")
+        "deeper_reflect", "deeper_rules")
 ROW_LABELS = {"exact": "ray traced", "interp": "interpolated (no angle threshold)",
               "interp_angle": "interpolated (angle threshold {angle:g} deg)",
               "interp_tol": f"interpolated (default: max error {DEFAULT_MAX_ERROR_DEG:g} deg)",
@@ -83,7 +87,8 @@ ROW_LABELS = {"exact": "ray traced", "interp": "interpolated (no angle threshold
               "raytree": "raytree policy (Bala et al.)",
               "deeper": "default tolerance, deeper tree (viewpoint depth {vp} + refine {vr}, "
                          "direction depth {dd})",
-              "deeper_reflect": "deeper tree, mirror rays from the interpolated normal"}
+              "deeper_reflect": "deeper tree, mirror rays from the interpolated normal",
+              "deeper_rules": "deeper tree, default rules without the tolerance (one pass)"}
 
 
 def paper(**kw) -> QueryOptions:
@@ -123,7 +128,7 @@ class BenchConfig:
     angles: tuple = (None, 45.0, 20.0, 10.0, 5.0)
     distances: tuple = (None, 0.1, 0.05, 0.02)
     extrapolations: tuple = (None, 0.1, 0.25, 0.5)
-    max_errors: tuple = (8.0, 4.0, 2.0, 1.0)     # --max-error (no angle threshold)
+    max_errors: tuple = (8.0, 4.0, 2.0, 1.0, 0.5, 0.25)   # --max-error (no angle threshold)
     path_max_errors: tuple = (4.0, 2.0)          # --max-error with --path-identity
     plots: bool = True
     images: bool = True
@@ -248,8 +253,14 @@ def measure_pass(st, tree, cam, size, options, order=0) -> dict:
         err = np.degrees(angle_between(ri.out_dir[interp], rx.out_dir[interp]))
         answers = np.full(b - a, -1, np.int8)
         answers[cand] = ans
+        # answered (not traced) beyond the default tolerance, or with a wrong kind of answer
+        # (hit / miss, null / not null)
+        off = (ans != TRACED) & (ans != OUTSIDE) & ((ri.hit != rx.hit) | (ri.null != rx.null))
+        off[np.flatnonzero(interp)[err > DEFAULT_MAX_ERROR_DEG]] = True
+        beyond = np.zeros(b - a, bool)
+        beyond[cand[off]] = True
         return {"col_i": out["interp"][0], "col_x": out["exact"][0], "s_i": out["interp"][1],
-                "objmask": objmask,
+                "objmask": objmask, "beyond": beyond,
                 "s_x": out["exact"][1], "answers": answers, "err": err,
                 "hit_disagree": int(np.sum(ri.hit != rx.hit))}
 
@@ -264,6 +275,7 @@ def measure_pass(st, tree, cam, size, options, order=0) -> dict:
     cand = answers >= 0
     objmask = np.concatenate([p["objmask"] for p in parts])
     traced = (answers == TRACED) | (answers == OUTSIDE)
+    beyond = np.concatenate([p["beyond"] for p in parts])
     lookups = int(np.sum(cand & (answers != OUTSIDE)))
     extra = int(np.sum(answers == EXTRA_S))
     n_interp = int(np.sum((answers >= FULL) & (answers <= EXTRAPOLATED_S)))
@@ -271,6 +283,7 @@ def measure_pass(st, tree, cam, size, options, order=0) -> dict:
             "img_i": img_i, "img_x": img_x, "traced_mask": traced.reshape(size, size),
             "rays_traced": int(traced.sum()), "object_rays": int(cand.sum()),
             "traced_fraction": float(traced[objmask].mean()) if objmask.any() else 0.0,
+            "beyond_fraction": float(beyond[objmask].mean()) if objmask.any() else 0.0,
             "object_hits": int(s_x["object_hits"]), "interpolated": n_interp,
             "samples_gathered": SAMPLES_PER_LOOKUP * lookups + SAMPLES_PER_EXTRA * extra,
             "hit_disagree": sum(p["hit_disagree"] for p in parts)}
@@ -324,6 +337,7 @@ def measure_configs(st, cam, size, configs: dict, workers) -> dict:
     rows = {"exact": {"rays_traced": first["object_rays"], "object_rays": first["object_rays"],
                       "object_hits": first["object_hits"], "interpolated": 0,
                       "traced_fraction": 1.0 if first["object_rays"] else 0.0,
+                      "beyond_fraction": 0.0,
                       "object_cpu_s": _median(ex_obj), "total_cpu_s": _median(ex_tot),
                       "object_cpu_s_all": ex_obj, "total_cpu_s_all": ex_tot,
                       **{k: int(first["s_x"].get(k, 0)) for k in TRACER_KEYS},
@@ -347,6 +361,7 @@ def measure_configs(st, cam, size, configs: dict, workers) -> dict:
                    "object_hits": int(p["s_i"]["object_hits"]),
                    "interpolated": p["interpolated"],
                    "traced_fraction": p["traced_fraction"],
+                   "beyond_fraction": p["beyond_fraction"],
                    "object_cpu_s": _median(io), "total_cpu_s": _median(it),
                    "object_cpu_s_all": io, "total_cpu_s_all": it,
                    "object_speedup": _median(sp_o), "total_speedup": _median(sp_t),
@@ -429,6 +444,9 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
                 if cfg.deeper_tree is not None:
                     deeper = _bake_deeper(cfg, name, st, scene, cam, workers, tree_dir, log)
                     configs["deeper"] = (deeper[0], QueryOptions(), cfg.repeats)
+                    # the default rules without the tolerance: what they trace or answer beyond
+                    # it is what no render-time rule on this tree can avoid tracing (the floor)
+                    configs["deeper_rules"] = (deeper[0], QueryOptions(max_error_deg=None), 1)
                     if mirror:
                         configs["deeper_reflect"] = (deeper[0], QueryOptions(mirror_rays="reflect"),
                                                      cfg.repeats)
@@ -451,7 +469,7 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
                     f"{rows['exact']['object_cpu_s']:.2f} -> {r['object_cpu_s']:.2f} s")
                 if deeper is not None:
                     tables += [_deeper_row(cfg, name, cam, rows[k], deeper[1], log, k)
-                               for k in ("deeper", "deeper_reflect") if k in rows]
+                               for k in ("deeper", "deeper_reflect", "deeper_rules") if k in rows]
                     _drop_tree(*deeper, cfg)
                 sweeps += _point_rows(cfg, name, points, rows, log)
                 _drop_tree(tree, brec, cfg)
@@ -660,6 +678,7 @@ def command_line(cfg: BenchConfig) -> str:
 
 # --------------------------------------------------------------------------- output
 TABLE_CSV = ("scene", "view", "row", "label", "rays_traced", "object_rays", "traced_fraction",
+             "beyond_fraction",
              "object_cpu_s", "total_cpu_s", "object_speedup", "total_speedup",
              "query_own_cpu_s", "query_own_fraction", "pairs",
              "newton_iters", "fallback_pairs", "exact_first_hits", "exact_mirror_hits",
@@ -750,17 +769,20 @@ def tables_markdown(result) -> str:
         r0 = rows[0]
         lines += [f"**{scene}** (tree: viewpoint depth {r0['viewpoint_depth']}, direction depth "
                   f"{r0['direction_depth']}, tolerance {r0['tolerance']:g} deg)", "",
-                  "| view | method | rays traced | traced % of object | object-only CPU s "
+                  "| view | method | rays traced | traced % of object | traced or beyond "
+                  f"{DEFAULT_MAX_ERROR_DEG:g} deg, % of object | object-only CPU s "
                   "| total CPU s | object-only speed-up | query's own work, % of exact "
                   "object-only | pairs | Newton it | samples gathered | mean / p99 / max err deg "
                   "| PSNR dB |",
-                  "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                  "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for r in rows:
             err = "-" if r["row"] == "exact" else _err3(r)
             own = "-" if r["row"] == "exact" else f"{100 * r['query_own_fraction']:.1f}"
             lines.append(
                 f"| {r['view']} | {r['label']} | {r['rays_traced']:,} of {r['object_rays']:,} | "
-                f"{100 * r['traced_fraction']:.1f} | {r['object_cpu_s']:.2f} | "
+                f"{100 * r['traced_fraction']:.1f} | "
+                f"{100 * (r['traced_fraction'] + r['beyond_fraction']):.1f} | "
+                f"{r['object_cpu_s']:.2f} | "
                 f"{r['total_cpu_s']:.2f} | {r['object_speedup']:.2f}x | {own} | {r['pairs']:,} | "
                 f"{r['newton_iters']:,} | {r['samples_gathered']:,} | {err} | "
                 f"{_fmt(r['psnr_db'], '{:.1f}')} |")

@@ -43,13 +43,14 @@ def test_outputs_exist(bench):
 def test_tables_consistent(bench):
     rows = _csv(bench / "tables.csv")
     res = json.loads((bench / "results.json").read_text())
-    # 2 scenes x 1 view x 6 rows, and the mirror's 2 rows of exact mirror hits
+    # 2 scenes x 1 view x 7 rows, and the mirror's 2 rows of mirror rays from the normal
     mirror_rows = {"interp_reflect", "deeper_reflect"}
     assert len(rows) == len(res["tables"]) == 2 * len(ROWS) - len(mirror_rows)
     assert res["machine"]["cpu_count"] >= 1 and res["command"].startswith("riray bench --quick")
     by = {}
     for r in rows:
         by.setdefault((r["scene"], r["view"]), {})[r["row"]] = r
+    gap = beyond = 0
     assert set(by) == {("glass_sphere", "close"), ("vase_mirror", "close")}
     for view, rs in by.items():
         assert set(rs) == set(ROWS) - (set() if view[0] == "vase_mirror" else mirror_rows), view
@@ -74,6 +75,15 @@ def test_tables_consistent(bench):
         assert (int(t["viewpoint_depth"]), int(t["direction_depth"]), int(t["viewpoint_refine"])) \
             == (vp, dd, vr) != (int(ex["viewpoint_depth"]), int(ex["direction_depth"]),
                                 int(ex["viewpoint_refine"]))
+        # the tolerance only ever traces rays the same rules without it answer; what those rules
+        # trace or answer beyond the tolerance (the floor) the tolerance traces or answers too
+        rules, tol = rs["deeper_rules"], rs["deeper"]
+        assert int(rules["rays_traced"]) <= int(tol["rays_traced"])
+        assert 0.0 <= float(rules["beyond_fraction"]) <= 1.0 - float(rules["traced_fraction"])
+        assert float(rules["traced_fraction"]) + float(rules["beyond_fraction"]) \
+            <= float(tol["traced_fraction"]) + float(tol["beyond_fraction"]) + 1e-9
+        gap += int(tol["rays_traced"]) - int(rules["rays_traced"])
+        beyond += float(rules["beyond_fraction"])
         # the angle threshold only ever adds traced rays to the no-threshold row
         assert int(rs["interp_angle"]["rays_traced"]) >= int(rs["interp"]["rays_traced"])
         # exact mirror hits (the default) only ever answer rays the tolerance would trace with
@@ -83,6 +93,8 @@ def test_tables_consistent(bench):
                 assert int(rs[newton]["rays_traced"]) <= int(rs[reflect]["rays_traced"])
                 assert int(rs[newton]["exact_mirror_hits"]) > 0 \
                     == int(rs[reflect]["exact_mirror_hits"])
+    # the tolerance traces rays the rules alone answer, and those rules answer some beyond it
+    assert gap > 0 and beyond > 0
     # the JSON and the CSV hold the same numbers
     for j, r in zip(res["tables"], rows):
         assert (j["scene"], j["view"], j["row"]) == (r["scene"], r["view"], r["row"])
