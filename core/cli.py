@@ -112,7 +112,8 @@ def _bake_opts(p):
                    "through the tree, miss the exact ones by more than this (degrees; default "
                    f"{d.viewpoint_tolerance_deg}; camera-region bakes only)")
     p.add_argument("--search-steps", type=int, default=d.search_steps,
-                   help="binary-search steps for the extra samples")
+                   help="binary-search steps for the extra samples of two-class cells "
+                   f"(default {d.search_steps})")
     p.add_argument("--full", action="store_true",
                    help="bake every viewpoint cell (default: only what the cameras need)")
     p.add_argument("--cameras", default=None,

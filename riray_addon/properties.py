@@ -98,7 +98,7 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                                   precision=4,
                                   description="... or its origin / first hit by more than this "
                                               "fraction of the object's box diagonal")
-    search_steps: IntProperty(name="Search steps", default=8, min=0, max=30,
+    search_steps: IntProperty(name="Search steps", default=4, min=0, max=30,
                               description="Binary-search steps for the extra samples of "
                                           "two-class cells (paper 4.3)")
     viewpoint_refine: IntProperty(name="Viewpoint refine", default=2, min=0, max=4,

@@ -56,7 +56,8 @@ class BakeParams:
     tolerance_dist: float = 0.002     # ... (or first hit / normal) misses the traced one by more
     viewpoint_tolerance_deg: float = 0.25  # split viewpoint cells whose camera test rays answered
                                       # through the tree miss the exact ones by more (verify.py)
-    search_steps: int = 8             # binary-search steps for the extra samples (paper 4.3)
+    search_steps: int = 4             # binary-search steps for the extra samples (paper 4.3):
+                                      # a boundary to 1/16 of a cell edge (see docs/ritree.md)
     pad: float = 1e-3                 # bounding-box padding, relative to the diagonal
 
     def validate(self) -> "BakeParams":
