@@ -460,7 +460,7 @@ def answer_ri(data, cell, pc, o, d, tmax, opt, first=None):
         a = answer_untested(data, cell, pc, o, d, tmax, opt, first)
         if a.info.get("newton"):
             a.info["past_tolerance"] = True
-            a.info["unmeasured"] = not all(math.isfinite(float(e)) for e in cell_errors(data, cell))
+            a.info["unmeasured"] = not all(math.isfinite(e) for e in cell_errors(data, cell))
         return a if a.ans == TRACED or a.info.get("newton") else traced
     return answer_untested(data, cell, pc, o, d, tmax, opt, first)
 
