@@ -171,6 +171,12 @@ def test_cancel_stops_the_shards(cluster, st):
     assert _idle(cluster, 5.0)
 
 
+def default_sigint():
+    """In the child before exec: Ctrl-C's default action (a shell that ran this suite in the
+    background set it to ignore, and Python then never raises KeyboardInterrupt)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_keeps_the_previous_cache(tmp_path, local_full):
     out = tmp_path / "tree.rit"
     ritree.save(local_full, out)
@@ -178,7 +184,7 @@ def test_ctrl_c_keeps_the_previous_cache(tmp_path, local_full):
     proc = subprocess.Popen([sys.executable, "-m", "riray.cli", "bake", "glass_sphere", "--full",
                              "--viewpoint-depth", "3", "--direction-depth", "4", "--scheduler",
                              "local:2", "--out", str(out)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint)
     line, t0 = "", time.time()
     while "bake:" not in line and time.time() - t0 < 120:   # the first progress of the shards
         line += proc.stderr.read(1)
