@@ -1,17 +1,23 @@
 """The ``.rit`` file: a baked RI-Tree (a JSON header + named numpy arrays) on disk.
 
-Layout of format version 1 (docs/tree-format.md; all integers little-endian):
+Layout of format version 2 (docs/tree-format.md; all integers little-endian):
   preamble  32 bytes  magic b"RIRAYTREE\\0", byte-order mark b"\\xff\\xfe" (uint16 0xFEFF), format
                       version uint32, header length uint64, crc32 of the header uint32, 4 zero bytes
   header    UTF-8 JSON {"header": <user header>, "payload_bytes": P, "arrays": [{"name", "dtype",
-                      "shape", "offset", "nbytes", "crc32"}, ...]}; zero padding up to a multiple of 64
-  payload   P bytes: each array's C-order little-endian bytes at ``offset`` (relative to the payload
-                      start, a multiple of 64), zero padding between arrays
+                      "shape", "offset", "nbytes", "crc32", "filters", "stored"}, ...]}; zero
+                      padding up to a multiple of 64
+  payload   P bytes: each array's ``stored`` bytes at ``offset`` (relative to the payload start, a
+                      multiple of 64), zero padding between arrays. With no ``filters`` they are its
+                      C-order little-endian bytes (``nbytes`` of them); otherwise what the filter
+                      chain made of them (filters.py: delta, shuffle, lzma). ``crc32`` is always
+                      that of the array's own (decoded) bytes
   trailer   40 bytes  b"RIRAYEND" + sha256 of every byte before the trailer
 
 Writes are atomic (temporary file beside the target, fsync, os.replace). Reads check the
 structure always (magic, version, header crc32, the array table, the file size) and, with
 ``verify``, every array's crc32 and the whole-file sha256, streaming in ``BLOCK`` byte blocks.
+Filtered arrays are encoded and decoded on up to ``os.cpu_count()`` threads (lzma releases the
+GIL).
 """
 
 from __future__ import annotations
@@ -22,16 +28,18 @@ import math
 import os
 import struct
 import zlib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, fields
 from typing import BinaryIO
 
 import numpy as np
 
 from ..scene.model import SpecularObject
+from . import filters as F
 
 MAGIC = b"RIRAYTREE\x00"
 BYTE_ORDER_MARK = b"\xff\xfe"          # uint16 0xFEFF written little-endian
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 # Fields after the version may change with the version; magic, mark and version never move.
 _IDENT = struct.Struct("<10s2sI")      # magic, byte-order mark, version
 _PREAMBLE = struct.Struct("<10s2sIQI4x")   # ... + header length, header crc32, reserved zeros
@@ -61,6 +69,12 @@ class _Entry:
     offset: int          # relative to the payload start
     nbytes: int
     crc32: int
+    filters: tuple[str, ...] = ()
+    stored: int = -1     # bytes in the payload (-1: nbytes)
+
+    def __post_init__(self):
+        if self.stored < 0:
+            self.stored = self.nbytes
 
 
 @dataclass
@@ -77,13 +91,44 @@ def _align(n: int) -> int:
 
 
 # --------------------------------------------------------------------------- writing
-def _prepare(path: str, header, arrays) -> tuple[bytes, list[np.ndarray]]:
-    """Validate the inputs; return the header bytes (preamble .. padding) and the byte views."""
+def _threads(n: int) -> int:
+    return max(1, min(n, os.cpu_count() or 1))
+
+
+def _encode_all(views: list[np.ndarray], chains: list[tuple[str, ...]]) -> list:
+    """Each array's stored bytes: the filtered encoding where it is smaller, else the raw view
+    (whose chain becomes empty). Every array's xz chunks share one pool of up to
+    os.cpu_count() threads, largest arrays first."""
+    todo = sorted((i for i, c in enumerate(chains) if c), key=lambda i: -views[i].nbytes)
+    out: list = [v.reshape(-1).view(np.uint8) for v in views]
+    if not todo:
+        return out
+    with ThreadPoolExecutor(_threads(sum(v.nbytes for v in views) // F.CHUNK + len(todo))) \
+            as pool:
+        pending = {}
+        for i in todo:
+            data = F.prefilter(views[i], chains[i])
+            pending[i] = [pool.submit(F.compress, c) for c in F.chunks(data)] \
+                if "lzma" in chains[i] else data
+        for i in todo:
+            p = pending[i]
+            data = b"".join(f.result() for f in p) if isinstance(p, list) else p
+            if len(data) < views[i].nbytes:
+                out[i] = np.frombuffer(data, np.uint8)
+            else:
+                chains[i] = ()
+    return out
+
+
+def _prepare(path: str, header, arrays, filters) -> tuple[bytes, list[np.ndarray]]:
+    """Validate the inputs, encode the filtered arrays; return the header bytes (preamble ..
+    padding) and the stored bytes of each array."""
     if not isinstance(header, dict):
         raise TreeCacheError(f"{path}: header must be a dict, got {type(header).__name__}")
     if not isinstance(arrays, dict):
         raise TreeCacheError(f"{path}: arrays must be a dict, got {type(arrays).__name__}")
-    table, views, offset = [], [], 0
+    filters = {} if filters is None else filters
+    table, views, chains = [], [], []
     for name, arr in arrays.items():
         if not isinstance(name, str) or not name:
             raise TreeCacheError(f"{path}: array names must be non-empty str, got {name!r}")
@@ -93,17 +138,30 @@ def _prepare(path: str, header, arrays) -> tuple[bytes, list[np.ndarray]]:
         if dtype.str not in DTYPES:
             raise TreeCacheError(f"{path}: array {name!r} has unsupported dtype {arr.dtype} "
                                  f"(supported: {sorted(DTYPES)})")
-        view = np.asarray(arr, dtype=dtype, order="C").reshape(-1).view(np.uint8)
+        try:
+            chains.append(F.check_chain(filters.get(name, ()), dtype))
+        except F.FilterError as exc:
+            raise TreeCacheError(f"{path}: array {name!r}: {exc}") from None
+        view = np.asarray(arr, dtype=dtype, order="C")
         table.append({"name": name, "dtype": dtype.str, "shape": list(arr.shape),
-                      "offset": offset, "nbytes": view.size, "crc32": zlib.crc32(view)})
+                      "nbytes": view.nbytes,
+                      "crc32": zlib.crc32(view.reshape(-1).view(np.uint8))})
         views.append(view)
-        offset = _align(offset + view.size)
-    payload = table[-1]["offset"] + table[-1]["nbytes"] if table else 0
     try:
-        text = json.dumps({"header": header, "payload_bytes": payload, "arrays": table},
-                          allow_nan=False, ensure_ascii=False, separators=(",", ":"))
+        json.dumps(header, allow_nan=False)                  # fail before the slow encoding
     except (TypeError, ValueError) as exc:
         raise TreeCacheError(f"{path}: header is not JSON-serializable: {exc}") from None
+    unknown = sorted(set(filters) - set(arrays), key=str)
+    if unknown:
+        raise TreeCacheError(f"{path}: filters name arrays that are not saved: {unknown}")
+    views = _encode_all(views, chains)
+    offset = 0
+    for entry, view, chain in zip(table, views, chains):
+        entry.update(offset=offset, filters=list(chain), stored=view.size)
+        offset = _align(offset + view.size)
+    payload = table[-1]["offset"] + table[-1]["stored"] if table else 0
+    text = json.dumps({"header": header, "payload_bytes": payload, "arrays": table},
+                      allow_nan=False, ensure_ascii=False, separators=(",", ":"))
     body = text.encode("utf-8")
     pre = _PREAMBLE.pack(MAGIC, BYTE_ORDER_MARK, FORMAT_VERSION, len(body), zlib.crc32(body))
     head = pre + body
@@ -125,15 +183,18 @@ def _write_payload(f: BinaryIO, sha, views: list[np.ndarray]) -> None:
         pos += view.size
 
 
-def save_tree(path: str | os.PathLike, header: dict, arrays: dict[str, np.ndarray]) -> None:
+def save_tree(path: str | os.PathLike, header: dict, arrays: dict[str, np.ndarray],
+              filters: dict[str, tuple[str, ...]] | None = None) -> None:
     """Write ``header`` (JSON-serializable dict) and ``arrays`` to the ``.rit`` file ``path``.
 
-    Everything is validated before anything is written. The file is written beside ``path`` under
+    ``filters`` maps array names to filter chains (filters.py); an array whose encoding is not
+    smaller than its bytes, or that is not named, is stored raw. Everything is validated and
+    encoded before anything is written. The file is written beside ``path`` under
     a temporary name, fsynced and moved into place with os.replace: on any error or interrupt the
     temporary file is removed and an existing file at ``path`` is untouched.
     """
     path = os.fspath(path)
-    head, views = _prepare(path, header, arrays)
+    head, views = _prepare(path, header, arrays, filters)
     tmp = f"{path}.{os.urandom(6).hex()}.tmp"
     f = open(tmp, "xb")
     try:
@@ -172,26 +233,38 @@ def _entries(path: str, table, payload: int) -> list[_Entry]:
         raise bad("'arrays' is not a list")
     entries, names = [], set()
     for i, e in enumerate(table):
-        keys = {"name", "dtype", "shape", "offset", "nbytes", "crc32"}
+        keys = {"name", "dtype", "shape", "offset", "nbytes", "crc32", "filters", "stored"}
         if not isinstance(e, dict) or set(e) != keys:
             raise bad(f"entry {i} must have exactly the keys {sorted(keys)}")
         name, dt, shape = e["name"], e["dtype"], e["shape"]
-        ints = [e["offset"], e["nbytes"], e["crc32"], *(shape if isinstance(shape, list) else [])]
+        ints = [e["offset"], e["nbytes"], e["stored"], e["crc32"],
+                *(shape if isinstance(shape, list) else [])]
         if not isinstance(name, str) or not name or name in names:
             raise bad(f"entry {i}: missing or duplicate name {name!r}")
         if not isinstance(dt, str) or dt not in DTYPES:
             raise bad(f"array {name!r}: dtype {dt!r} is not one of {sorted(DTYPES)}")
         if not isinstance(shape, list) or any(type(x) is not int or x < 0 for x in ints):
-            raise bad(f"array {name!r}: shape/offset/nbytes/crc32 must be non-negative integers")
+            raise bad(f"array {name!r}: shape/offset/nbytes/stored/crc32 must be non-negative "
+                      "integers")
         dtype = np.dtype(dt)
         if e["nbytes"] != math.prod(shape) * dtype.itemsize:
             raise bad(f"array {name!r}: nbytes {e['nbytes']} != shape {shape} x {dtype.itemsize}")
-        if e["offset"] % ALIGN or e["offset"] + e["nbytes"] > payload or e["crc32"] >> 32:
-            raise bad(f"array {name!r}: offset {e['offset']} + nbytes {e['nbytes']} is unaligned "
+        try:
+            if not isinstance(e["filters"], list):
+                raise F.FilterError("filters must be a list")
+            chain = F.check_chain(e["filters"], dtype)
+        except F.FilterError as exc:
+            raise bad(f"array {name!r}: {exc}") from None
+        if not chain and e["stored"] != e["nbytes"]:
+            raise bad(f"array {name!r}: stored {e['stored']} != nbytes {e['nbytes']} without "
+                      "filters")
+        if e["offset"] % ALIGN or e["offset"] + e["stored"] > payload or e["crc32"] >> 32:
+            raise bad(f"array {name!r}: offset {e['offset']} + stored {e['stored']} is unaligned "
                       f"or outside the {payload}-byte payload, or crc32 out of range")
         names.add(name)
-        entries.append(_Entry(name, dtype, tuple(shape), e["offset"], e["nbytes"], e["crc32"]))
-    spans = sorted((e.offset, e.offset + e.nbytes, e.name) for e in entries if e.nbytes)
+        entries.append(_Entry(name, dtype, tuple(shape), e["offset"], e["nbytes"], e["crc32"],
+                              chain, e["stored"]))
+    spans = sorted((e.offset, e.offset + e.stored, e.name) for e in entries if e.stored)
     for (_, end, a), (start, _, b) in zip(spans, spans[1:]):
         if start < end:
             raise bad(f"arrays {a!r} and {b!r} overlap")
@@ -250,12 +323,15 @@ def _read_layout(path: str, f: BinaryIO) -> tuple[_Layout, bytes]:
 
 
 def _scan(path: str, f: BinaryIO, layout: _Layout, head: bytes,
-          dest: dict[str, np.ndarray] | None, verify: bool) -> None:
+          dest: dict[str, np.ndarray] | None, verify: bool) -> tuple[dict[str, bytearray], bool]:
     """Stream the file after ``head`` in BLOCK-sized reads: fill ``dest`` buffers (when given) and,
-    with ``verify``, check every array's crc32, then the trailer and the whole-file sha256."""
+    with ``verify``, check every raw array's crc32, then read the trailer. Returns the stored
+    bytes of the filtered arrays (whose crc32 is checked once decoded, so that a damaged one is
+    named) and whether the whole-file sha256 matched (True without ``verify``)."""
     sha = hashlib.sha256(head) if verify else None
     scratch = memoryview(bytearray(BLOCK))
     pos = len(head)                                  # absolute file position
+    stored: dict[str, bytearray] = {}
 
     def pump(n: int, out: memoryview | None) -> int:
         """Read the next n bytes (into ``out`` or the scratch block); their crc32 if verifying."""
@@ -273,29 +349,55 @@ def _scan(path: str, f: BinaryIO, layout: _Layout, head: bytes,
 
     for e in sorted(layout.entries, key=lambda e: e.offset):
         pump(max(layout.data_offset + e.offset - pos, 0), None)   # < 0: an empty array
+        if e.filters:
+            stored[e.name] = bytearray(e.stored)
+            pump(e.stored, memoryview(stored[e.name]))
+            continue
         out = None
         if dest is not None:
             out = memoryview(dest[e.name].reshape(-1).view(np.uint8))
         if pump(e.nbytes, out) != e.crc32 and verify:
             raise TreeCacheError(f"{path}: corrupt: array {e.name!r} checksum (crc32) mismatch")
     if not verify:
-        return
+        return stored, True
     pump(layout.data_offset + layout.payload_bytes - pos, None)
     mark, digest = _TRAILER.unpack(f.read(_TRAILER.size))
-    if mark != END_MARK or digest != sha.digest():
-        raise TreeCacheError(f"{path}: corrupt: whole-file sha256 mismatch (trailer, header "
-                             "padding or padding between arrays)")
+    return stored, mark == END_MARK and digest == sha.digest()
+
+
+def _decode_all(path: str, layout: _Layout, stored: dict, verify: bool,
+                writeable: bool) -> dict[str, np.ndarray]:
+    """The filtered arrays decoded, on up to os.cpu_count() threads; their crc32 checked with
+    ``verify``."""
+    entries = sorted((e for e in layout.entries if e.filters), key=lambda e: -e.nbytes)
+
+    def one(e: _Entry) -> np.ndarray:
+        try:
+            arr = F.decode(stored[e.name], e.filters, e.dtype, e.shape)
+        except F.FilterError as exc:
+            raise TreeCacheError(f"{path}: corrupt: array {e.name!r} does not decode "
+                                 f"({exc})") from None
+        if verify and zlib.crc32(arr.reshape(-1).view(np.uint8)) != e.crc32:
+            raise TreeCacheError(f"{path}: corrupt: array {e.name!r} checksum (crc32) mismatch")
+        arr.flags.writeable = writeable
+        return arr
+
+    if not entries:
+        return {}
+    with ThreadPoolExecutor(_threads(len(entries))) as pool:
+        return dict(zip((e.name for e in entries), pool.map(one, entries)))
 
 
 def load_tree(path: str | os.PathLike, *, mmap: bool = True, verify: bool = True,
               expect_fingerprint: str | None = None) -> tuple[dict, dict[str, np.ndarray]]:
     """Read a ``.rit`` file: (header, arrays) in the order they were saved.
 
-    mmap=True: arrays are read-only np.memmap views of the file (nothing is read into memory);
-    mmap=False: in-memory (writeable) copies. verify=True streams the file once, checking each
-    array's crc32 and the whole-file sha256 (memory bounded by BLOCK). With expect_fingerprint,
-    a tree whose header["fingerprint"] differs raises StaleTreeError. Every problem raises
-    TreeCacheError naming the file.
+    mmap=True: raw arrays are read-only np.memmap views of the file (nothing is read into
+    memory); mmap=False: in-memory (writeable) copies. Filtered arrays are always decoded into
+    memory (read-only with mmap=True). verify=True streams the file once, checking each array's
+    crc32 and the whole-file sha256 (memory bounded by BLOCK plus the filtered arrays' stored
+    bytes). With expect_fingerprint, a tree whose header["fingerprint"] differs raises
+    StaleTreeError. Every problem raises TreeCacheError naming the file.
     """
     path = os.fspath(path)
     with open(path, "rb") as f:
@@ -305,16 +407,23 @@ def load_tree(path: str | os.PathLike, *, mmap: bool = True, verify: bool = True
             raise StaleTreeError(
                 f"{path}: stale tree: the object's geometry or material changed since the bake "
                 f"(tree fingerprint {have!r}, scene {expect_fingerprint!r}); re-bake the RI-Tree")
+        raw = [e for e in layout.entries if not e.filters]
         if mmap:
-            if verify:
-                _scan(path, f, layout, head, None, True)
+            stored, sha_ok = _scan(path, f, layout, head, None, verify) if verify else (None, True)
             whole = np.memmap(f, dtype=np.uint8, mode="r")
+            if stored is None:
+                stored = {e.name: whole[layout.data_offset + e.offset:][:e.stored]
+                          for e in layout.entries if e.filters}
             arrays = {e.name: whole[layout.data_offset + e.offset:][:e.nbytes]
-                      .view(e.dtype).reshape(e.shape) for e in layout.entries}
+                      .view(e.dtype).reshape(e.shape) for e in raw}
         else:
-            arrays = {e.name: np.empty(e.shape, e.dtype) for e in layout.entries}
-            _scan(path, f, layout, head, arrays, verify)
-    return layout.header, arrays
+            arrays = {e.name: np.empty(e.shape, e.dtype) for e in raw}
+            stored, sha_ok = _scan(path, f, layout, head, arrays, verify)
+    arrays.update(_decode_all(path, layout, stored, verify, writeable=not mmap))
+    if not sha_ok:
+        raise TreeCacheError(f"{path}: corrupt: whole-file sha256 mismatch (trailer, header "
+                             "padding or padding between arrays)")
+    return layout.header, {e.name: arrays[e.name] for e in layout.entries}
 
 
 def describe(path: str | os.PathLike) -> dict:
@@ -325,7 +434,8 @@ def describe(path: str | os.PathLike) -> dict:
     return {"path": path, "format_version": FORMAT_VERSION, "file_bytes": layout.file_bytes,
             "payload_bytes": layout.payload_bytes, "header": layout.header,
             "arrays": [{"name": e.name, "dtype": e.dtype.name, "shape": list(e.shape),
-                        "nbytes": e.nbytes} for e in layout.entries]}
+                        "nbytes": e.nbytes, "stored": e.stored, "filters": list(e.filters)}
+                       for e in layout.entries]}
 
 
 # --------------------------------------------------------------------------- fingerprint

@@ -221,6 +221,11 @@ class PackedSamples:
         return cls(**codes, patch=patch, null=null,
                    tree=table[code] if n else np.zeros(0, np.uint32), lo=lo, hi=hi)
 
+    def take(self, ids) -> "PackedSamples":
+        """The samples ``ids`` (in that order)."""
+        return PackedSamples(**{k: getattr(self, k)[ids] for k in self.FIELDS},
+                             lo=self.lo, hi=self.hi)
+
     def gather(self, ids) -> np.ndarray:
         """(..., 12) float64 values of sample ids; each distinct sample is decoded once."""
         ids = np.asarray(ids)
@@ -379,22 +384,40 @@ class RITree:
         return np.where(p >= 0, self.class_of[np.maximum(p, 0)], -1)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The tree as the cache file's named arrays (layout 4, docs/tree-format.md)."""
+        """The tree as the cache file's named arrays (layout 4, docs/tree-format.md), samples in
+        first-use order (``first_use_order``)."""
+        packed = self.samples if isinstance(self.samples, PackedSamples) else \
+            self.samples.packed(self.box_lo, self.box_hi)
+        leaf_corner = self.dir_forest.corner[self.dir_forest.child < 0]
+        perm = first_use_order(leaf_corner, self.ex_ids, len(packed))
+        new_id = np.empty(len(perm), np.int64)
+        new_id[perm] = np.arange(len(perm))
         out = {"box_lo": self.box_lo, "box_hi": self.box_hi, "class_of": self.class_of,
                "vp_pos": self.vp_pos, "vp_face": self.vp_face, "dir_rect": self.dir_rect,
                "ex_node": _ids(self.ex_node), "ex_kind": self.ex_kind.astype(np.int8),
-               "ex_ids": _ids(self.ex_ids), "ex_pos": _ex_pos_codes(self.ex_pos),
+               "ex_ids": _ids(new_id[self.ex_ids]), "ex_pos": _ex_pos_codes(self.ex_pos),
                "ex_corner": self.ex_corner.astype(np.int8), "dir_err": self.dir_err,
                "dir_flags": self.dir_flags, "vp_err": self.vp_err, "vp_flags": self.vp_flags}
         for name, forest in (("vp", self.vp_forest), ("dir", self.dir_forest)):
             a = forest.arrays(name)
+            if name == "dir":
+                a["dir.leaf_corner"] = new_id[leaf_corner]
             for k in ("root", "child", "leaf_corner"):
                 a[f"{name}.{k}"] = _ids(a[f"{name}.{k}"])
             out.update(a)
-        packed = self.samples if isinstance(self.samples, PackedSamples) else \
-            self.samples.packed(self.box_lo, self.box_hi)
-        out.update({f"s.{k}": v for k, v in packed.stored().items()})
+        out.update({f"s.{k}": v for k, v in packed.take(perm).stored().items()})
         return out
+
+    # The cache file's filter chains (filters.py): ids and codes as column differences, which
+    # are small once the samples are in first-use order; everything else as it is.
+    _DELTA = ("vp.root", "vp.child", "vp.leaf_corner", "dir.root", "dir.child",
+              "dir.leaf_corner", "ex_node", "ex_ids", "ex_pos") \
+        + tuple(f"s.{k}" for k in PackedSamples.CODES)
+
+    def file_filters(self, arrays: dict[str, np.ndarray]) -> dict[str, tuple[str, ...]]:
+        """The filter chain of each of ``arrays`` (RITree.arrays) in the cache file."""
+        return {k: ("delta", "shuffle", "lzma") if k in self._DELTA and a.dtype.kind in "iu"
+                else ("lzma",) for k, a in arrays.items()}
 
     def header(self) -> dict:
         return {"layout": TREE_LAYOUT, "params": asdict(self.params), "diag": self.diag,
@@ -449,9 +472,24 @@ def _ex_pos_codes(pos: np.ndarray) -> np.ndarray:
     return np.asarray(pos, np.float32)
 
 
-def save(tree: RITree, path) -> None:
-    """Write ``tree`` to a .rit cache file (atomically; see ritree.cache)."""
-    save_tree(path, tree.header(), tree.arrays())
+def first_use_order(leaf_corner: np.ndarray, ex_ids: np.ndarray, n: int) -> np.ndarray:
+    """(n,) sample ids in the order of their first use: by the leaves' corners in node order,
+    then by the extra samples, then unused ones in id order (new id -> old id). Samples of one
+    direction tree and neighbouring cells get neighbouring ids, so their codes and the leaves'
+    corner ids differ little from one to the next. Applied to a tree already in this order it
+    is the identity."""
+    uses = np.concatenate([np.asarray(leaf_corner, np.int64).reshape(-1),
+                           np.asarray(ex_ids, np.int64).reshape(-1), np.arange(n)])
+    uses = uses[uses >= 0]
+    ids, first = np.unique(uses, return_index=True)
+    return ids[np.argsort(first, kind="stable")]
+
+
+def save(tree: RITree, path, header_extra: dict | None = None) -> None:
+    """Write ``tree`` to a .rit cache file (atomically, compressed; see ritree.cache), its header
+    extended by ``header_extra``."""
+    arrays = tree.arrays()
+    save_tree(path, {**tree.header(), **(header_extra or {})}, arrays, tree.file_filters(arrays))
 
 
 def load(path, scene=None, mmap: bool = True) -> RITree:

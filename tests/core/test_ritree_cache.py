@@ -5,6 +5,7 @@ error bounds on a million vectors / points including the octahedron's folds and 
 
 import copy
 import json
+import lzma
 import os
 import struct
 import zlib
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 
 from riray.geometry.primitives import sphere
-from riray.ritree import cache, codec
+from riray.ritree import cache, codec, filters
 from riray.ritree.cache import StaleTreeError, TreeCacheError
 from riray.render.image import encode_png
 from riray.scene.model import ObjectMaterial, Patch, SpecularObject
@@ -35,16 +36,25 @@ def random_array(dtype, shape):
     return RNG.integers(info.min, info.max, size=shape, dtype=dtype, endpoint=True)
 
 
+CHAINS = [(), ("lzma",), ("shuffle", "lzma"), ("delta", "shuffle", "lzma"), ("delta",),
+          ("shuffle",), ("delta", "lzma")]
+
+
 @pytest.fixture
 def tree(tmp_path):
-    """A small valid tree on disk: (path, header, arrays)."""
+    """A small valid tree on disk: (path, header, arrays); array "c" is stored compressed."""
     arrays = {"a": np.arange(1000, dtype=np.float64), "b": np.arange(12, dtype=np.int32)
-              .reshape(3, 4), "empty": np.zeros((0, 3), np.float32), "s": np.array(7, np.uint8)}
+              .reshape(3, 4), "empty": np.zeros((0, 3), np.float32), "s": np.array(7, np.uint8),
+              "c": np.tile(np.arange(50, dtype=np.uint16), (40, 3))}
     header = {"format": 1, "fingerprint": FP, "region": {"lo": [0, 0, 0], "hi": [1, 2, 3]},
               "note": "gl\u00e4ss"}
     path = tmp_path / "t.rit"
-    cache.save_tree(path, header, arrays)
+    cache.save_tree(path, header, arrays, {"c": ("delta", "shuffle", "lzma")})
     return path, header, arrays
+
+
+def entry(path, name):
+    return next(e for e in json.loads(layout(path)[2])["arrays"] if e["name"] == name)
 
 
 def layout(path):
@@ -76,23 +86,97 @@ def error(path, match, exc=TreeCacheError, **kw):
 
 
 # --------------------------------------------------------------------------- round trips
+def compressible(dtype, shape):
+    """Smooth integers (that the filters shrink) or repeated bytes."""
+    if np.dtype(dtype).kind in "iu":
+        info = np.iinfo(dtype)
+        ramp = np.arange(int(np.prod(shape)), dtype=np.int64) * 7 + int(info.max) - 20
+        return (ramp % (int(info.max) - int(info.min) + 1) + int(info.min)).astype(dtype) \
+            .reshape(shape)
+    return np.resize(random_array(dtype, (5,)), shape)
+
+
 @pytest.mark.parametrize("mmap", [True, False])
-def test_round_trip_bit_identical(tmp_path, mmap):
-    arrays = {f"{np.dtype(t).name}_{i}": random_array(t, s)
-              for t in DTYPES for i, s in enumerate(SHAPES)}
+@pytest.mark.parametrize("chain", CHAINS)
+def test_round_trip_bit_identical(tmp_path, mmap, chain):
+    """Every dtype and shape, random (incompressible: stored raw) and compressible arrays, each
+    saved under ``chain`` where the dtype allows it."""
+    arrays = {f"{np.dtype(t).name}_{i}_{kind}": make(t, s)
+              for t in DTYPES for i, s in enumerate(SHAPES + [(300, 4)])
+              for kind, make in (("random", random_array), ("smooth", compressible))}
+    fits = {k: chain for k, a in arrays.items() if "delta" not in chain or a.dtype.kind in "iu"}
     header = {"fingerprint": FP, "counts": [1, 2], "nested": {"x": None, "y": 1.5, "z": "\u03c0"}}
     path = tmp_path / "all.rit"
-    cache.save_tree(path, header, arrays)
+    cache.save_tree(path, header, arrays, fits)
     got_header, got = cache.load_tree(path, mmap=mmap)
     assert got_header == header
     assert list(got) == list(arrays)
+    table = {e["name"]: e for e in cache.describe(path)["arrays"]}
     for name, a in arrays.items():
         b = got[name]
         assert b.dtype == a.dtype and b.shape == a.shape and b.tobytes() == a.tobytes(), name
         assert b.flags.writeable != mmap
-        if mmap and a.size:
+        e = table[name]
+        assert e["filters"] in ([], list(fits.get(name, ())))   # raw where it would not shrink
+        assert (e["stored"] < e["nbytes"]) == bool(e["filters"])
+        if mmap and a.size and not e["filters"]:
             assert isinstance(b, np.memmap)
             assert b.ctypes.data % cache.ALIGN == 0
+    if "lzma" in chain:           # the smooth arrays of 1,200 elements do shrink
+        assert table["int32_5_smooth"]["filters"] == list(fits["int32_5_smooth"])
+
+
+def test_filters_match_plain_definitions():
+    """delta, shuffle and lzma as the format defines them, against plain loops and the standard
+    library's own xz decoder."""
+    a = np.array([[65535, 2], [0, 7], [3, 65534]], np.uint16)
+    d = np.frombuffer(filters.encode(a, ("delta",)), np.uint16)
+    cols = [[65535, 0, 3], [2, 7, 65534]]
+    want = [v if i == 0 else (v - c[i - 1]) % 65536 for c in cols for i, v in enumerate(c)]
+    assert d.tolist() == want
+    b = np.array([0x0102, 0x0304, 0x0506], np.int16)
+    assert filters.encode(b, ("shuffle",)) == bytes([2, 4, 6, 1, 3, 5])
+    x = np.arange(1000, dtype=np.int64)
+    assert lzma.decompress(filters.encode(x, ("lzma",))) == x.tobytes()
+    s = np.int32(-5).reshape(())
+    assert filters.decode(filters.encode(s, ("delta",)), ("delta",), s.dtype, ()) == s
+
+
+def test_filter_chains_are_checked():
+    for chain in (("zip",), ("lzma", "delta"), ("shuffle", "shuffle"), (1,)):
+        with pytest.raises(filters.FilterError, match="subsequence"):
+            filters.check_chain(chain, np.dtype("<u2"))
+    with pytest.raises(filters.FilterError, match="integer"):
+        filters.check_chain(("delta",), np.dtype("<f4"))
+    with pytest.raises(filters.FilterError, match="integer"):
+        filters.check_chain(("delta",), np.dtype("|b1"))
+
+
+def test_chunked_streams_round_trip(tmp_path, monkeypatch):
+    """An array longer than a chunk is stored as several xz streams, compressed on several
+    threads and decoded one after the other; a file cut after the first stream is refused."""
+    monkeypatch.setattr(filters, "CHUNK", 4000)
+    a = np.arange(30000, dtype=np.int32) // 7
+    path = tmp_path / "c.rit"
+    cache.save_tree(path, {}, {"a": a}, {"a": ("delta", "shuffle", "lzma")})
+    assert np.array_equal(cache.load_tree(path)[1]["a"], a)
+    e = entry(path, "a")
+    stored = filters.encode(a, e["filters"])
+    assert stored.count(b"\xfd7zXZ\x00") == 30 and len(stored) == e["stored"]
+    first = filters.encode(a[:1000], ("lzma",))        # one stream of 4,000 bytes
+    with pytest.raises(filters.FilterError, match="decode to 4000 bytes, the table says 8000"):
+        filters.decode(first, ("lzma",), a.dtype, (2000,))
+    assert np.array_equal(filters.decode(first + first, ("lzma",), a.dtype, (2000,)),
+                          np.tile(a[:1000], 2))
+
+
+def test_lzma_stream_longer_than_the_table_is_refused():
+    """A stream that decodes to more bytes than the array's shape holds is stopped there."""
+    big = lzma.compress(bytes(10**6), format=lzma.FORMAT_XZ, check=lzma.CHECK_NONE)
+    with pytest.raises(filters.FilterError, match="decode to more than 100 bytes"):
+        filters.decode(big, ("lzma",), np.dtype("<u1"), (100,))
+    with pytest.raises(filters.FilterError, match="does not decode"):
+        filters.decode(big[:-7], ("lzma",), np.dtype("<u1"), (10**6,))
 
 
 def test_mmap_and_memory_loads_agree_and_inputs_normalised(tmp_path):
@@ -118,6 +202,8 @@ def test_empty_tree_and_describe(tree, tmp_path):
     assert info["format_version"] == cache.FORMAT_VERSION
     assert [(a["name"], a["dtype"], tuple(a["shape"]), a["nbytes"]) for a in info["arrays"]] == \
         [(n, a.dtype.name, a.shape, a.nbytes) for n, a in arrays.items()]
+    c = info["arrays"][-1]
+    assert c["filters"] == ["delta", "shuffle", "lzma"] and c["stored"] < c["nbytes"] / 10
 
 
 # --------------------------------------------------------------------------- read errors
@@ -139,10 +225,11 @@ def test_wrong_magic_version_byte_order(tree):
     error(path, "not a riray tree")
     flip(path, 0)
     raw = bytearray(path.read_bytes())
+    for old in (1, 3):
+        raw[12:16] = struct.pack("<I", old)
+        path.write_bytes(bytes(raw))
+        error(path, f"format version {old} is not supported.*reads version 2.*re-bake")
     raw[12:16] = struct.pack("<I", 2)
-    path.write_bytes(bytes(raw))
-    error(path, "format version 2 is not supported.*reads version 1")
-    raw[12:16] = struct.pack("<I", 1)
     raw[10:12] = b"\xfe\xff"
     path.write_bytes(bytes(raw))
     error(path, "byte-order mark")
@@ -168,6 +255,29 @@ def test_corrupt_payload_names_array(tree):
         error(path, "corrupt: array 'b' checksum", mmap=mmap)
     _, got = cache.load_tree(path, verify=False)     # unverified loads do not read the payload
     assert not np.array_equal(got["b"], arrays["b"])
+
+
+@pytest.mark.parametrize("where", ["stream", "content"])
+def test_corrupt_filtered_array_names_it(tree, where):
+    """Damage to a compressed array: a stream that fails to decode, or one that decodes to bytes
+    of another crc32 (which a verified load catches and an unverified one returns)."""
+    path, _, arrays = tree
+    e = entry(path, "c")
+    _, data_offset, _ = layout(path)
+    if where == "stream":
+        flip(path, data_offset + e["offset"] + e["stored"] // 2)
+        for mmap in (True, False):
+            for verify in (True, False):
+                error(path, "corrupt: array 'c' (does not decode|checksum)", mmap=mmap,
+                      verify=verify)
+        return
+    doc = json.loads(layout(path)[2])           # the table's crc32 of "c" no longer fits
+    next(x for x in doc["arrays"] if x["name"] == "c")["crc32"] ^= 1
+    rewrite_header(path, doc=doc)
+    for mmap in (True, False):
+        error(path, "corrupt: array 'c' checksum", mmap=mmap)
+        _, got = cache.load_tree(path, mmap=mmap, verify=False)
+        assert np.array_equal(got["c"], arrays["c"])
 
 
 def test_corrupt_header_padding_trailer(tree):
@@ -208,6 +318,12 @@ def test_malformed_header(tree):
     (lambda a: a[1].update(shape=[-3, -4]), "non-negative"),
     (lambda a: a[1].update(name="a"), "duplicate"),
     (lambda a: a[1].pop("crc32"), "keys"),
+    (lambda a: a[1].pop("filters"), "keys"),
+    (lambda a: a[1].update(filters="lzma"), "must be a list"),
+    (lambda a: a[1].update(filters=["zip"]), "subsequence"),
+    (lambda a: a[0].update(filters=["delta"]), "integer dtype"),
+    (lambda a: a[1].update(stored=4), "stored 4 != nbytes 48 without filters"),
+    (lambda a: a[4].update(stored=10**9), "outside"),
 ])
 def test_inconsistent_table(tree, change, message):
     path = tree[0]
@@ -240,10 +356,12 @@ def test_stale(tree):
     ({"n": np.int64(3)}, {}, "not JSON-serializable"),
     ({"n": float("nan")}, {}, "not JSON-serializable"),
     ({"n": {1, 2}}, {}, "not JSON-serializable"),
+    ({}, {"x": np.zeros(2)}, "filters name arrays that are not saved: \\['y'\\]"),
+    ({}, {"y": np.zeros(2)}, "array 'y': filter 'delta' needs an integer dtype"),
 ])
 def test_save_validates_before_writing(tmp_path, header, arrays, message):
     with pytest.raises(TreeCacheError, match=message):
-        cache.save_tree(tmp_path / "v.rit", header, arrays)
+        cache.save_tree(tmp_path / "v.rit", header, arrays, {"y": ("delta", "lzma")})
     assert os.listdir(tmp_path) == []
 
 

@@ -36,7 +36,9 @@ from riray.ritree.query import (EXTRAPOLATED_S, FULL, MISS, NULL_S, OUTSIDE, RED
                                 QueryOptions, TreeQuery)
 from riray.ritree.region import Region
 
-from riray.ritree.tree import EX_POS_SCALE, BakeParams, PackedSamples, RITree, Samples
+from riray.ritree import tree as ritree
+from riray.ritree.tree import (EX_POS_SCALE, BakeParams, PackedSamples, RITree, Samples,
+                               first_use_order)
 from riray.scene.model import ObjectMaterial, Patch, RenderSettings, Scene, SpecularObject
 
 
@@ -1029,7 +1031,7 @@ def test_region_cells_only_describe(mirror):
 
 # --------------------------------------------------------------------------- 10: cache
 def save_load(tree, path, mmap):
-    cache.save_tree(path, tree.header(), tree.arrays())
+    ritree.save(tree, path)
     header, arrays = cache.load_tree(path, mmap=mmap)
     assert header == tree.header()
     for k, a in tree.arrays().items():
@@ -1174,6 +1176,48 @@ def test_cache_round_trip_answers_bit_identically(tmp_path, sphere_st, sphere_tr
     assert (tmp_path / "a.rit").read_bytes() == (tmp_path / "b.rit").read_bytes()
     o, d, tmax = cache_queries(tree)
     same_answers(a, b, sphere_st, o, d, tmax)
+
+
+def test_first_use_order_matches_a_plain_loop():
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 40):
+        corners = rng.integers(-1, n, (7, 4)) if n else np.zeros((0, 4), np.int64)
+        extras = rng.integers(0, n, (3, 4)) if n else np.zeros((0, 4), np.int64)
+        want = []
+        for i in [*corners.ravel(), *extras.ravel(), *range(n)]:
+            if i >= 0 and i not in want:
+                want.append(i)
+        got = first_use_order(corners, extras, n)
+        assert got.tolist() == want
+        new = np.empty(n, np.int64)
+        new[got] = np.arange(n)
+        again = first_use_order(np.where(corners >= 0, new[corners], -1), new[extras], n)
+        assert again.tolist() == list(range(n))            # idempotent
+
+
+def test_file_is_the_same_tree_in_first_use_order_and_compressed(tmp_path, sphere_trees):
+    """The file renumbers samples by first use: every leaf corner and extra sample of the
+    loaded tree holds the sample it held in the baked tree, and the file is much smaller than
+    the raw arrays."""
+    tree = sphere_trees[4, 4]
+    path = tmp_path / "a.rit"
+    back = save_load(tree, path, mmap=True)
+    leaf = tree.dir_forest.child < 0
+    old_ids, new_ids = tree.dir_forest.corner[leaf], back.dir_forest.corner[leaf]
+    assert not np.array_equal(old_ids, new_ids)                      # the bake's order is not
+    assert np.array_equal(first_use_order(new_ids, back.ex_ids, len(back.samples)),
+                          np.arange(len(back.samples)))
+    packed = tree.samples if isinstance(tree.samples, PackedSamples) else \
+        tree.samples.packed(tree.box_lo, tree.box_hi)
+    for new, old in ((new_ids, old_ids), (back.ex_ids, tree.ex_ids)):
+        hit = packed.patch[old] >= 0              # the file keeps no output codes of misses
+        for k in PackedSamples.FIELDS:
+            want = getattr(packed, k)[old]
+            assert np.array_equal(getattr(back.samples, k)[new][hit] if k in
+                                  PackedSamples.CODES else getattr(back.samples, k)[new],
+                                  want[hit] if k in PackedSamples.CODES else want), k
+    raw = sum(a.nbytes for a in tree.arrays().values())
+    assert path.stat().st_size < raw / 2
 
 
 def test_cache_round_trip_close_to_baked_tree(tmp_path, sphere_st, sphere_trees):
