@@ -65,7 +65,7 @@ import numpy as np
 from ..parallel import map_chunks, workers_default
 from ..render.camera import camera_rays
 from ..render.exact import SceneTracer, render_pixels, share_size
-from ..render.interpolated import psnr, query_own_cpu
+from ..render.interpolated import disagreements, psnr, query_own_cpu
 from ..ritree import tree as ritree
 from ..ritree.bake import bake
 from ..ritree.interp import angle_between
@@ -262,7 +262,7 @@ def measure_pass(st, tree, cam, size, options, order=0) -> dict:
         return {"col_i": out["interp"][0], "col_x": out["exact"][0], "s_i": out["interp"][1],
                 "objmask": objmask, "beyond": beyond,
                 "s_x": out["exact"][1], "answers": answers, "err": err,
-                "hit_disagree": int(np.sum(ri.hit != rx.hit))}
+                "disagree": disagreements(ri, rx)}
 
     t0 = time.perf_counter()
     parts = map_chunks(work, len(o), share_size(len(o), 1), 1)
@@ -286,7 +286,8 @@ def measure_pass(st, tree, cam, size, options, order=0) -> dict:
             "beyond_fraction": float(beyond[objmask].mean()) if objmask.any() else 0.0,
             "object_hits": int(s_x["object_hits"]), "interpolated": n_interp,
             "samples_gathered": SAMPLES_PER_LOOKUP * lookups + SAMPLES_PER_EXTRA * extra,
-            "hit_disagree": sum(p["hit_disagree"] for p in parts)}
+            "hit_disagree": sum(p["disagree"][0] for p in parts),
+            "null_disagree": sum(p["disagree"][1] for p in parts)}
 
 
 def _sum(dicts):
@@ -308,7 +309,7 @@ def _errors(p) -> dict:
             "angle_p99_deg": float(np.percentile(e, 99)) if len(e) else None,
             "angle_max_deg": float(e.max()) if len(e) else None,
             "psnr_db": psnr(p["img_i"], p["img_x"]), "max_pixel_diff": float(diff.max()),
-            "hit_disagreements": p["hit_disagree"]}
+            "hit_disagreements": p["hit_disagree"], "null_disagreements": p["null_disagree"]}
 
 
 def measure_configs(st, cam, size, configs: dict, workers) -> dict:
@@ -344,7 +345,8 @@ def measure_configs(st, cam, size, configs: dict, workers) -> dict:
                       "exact_first_hits": 0, "exact_mirror_hits": 0, "mirror_newton_cpu_s": 0.0,
                       "samples_gathered": 0,
                       "angle_mean_deg": 0.0, "angle_p99_deg": 0.0, "angle_max_deg": 0.0,
-                      "psnr_db": float("inf"), "max_pixel_diff": 0.0, "hit_disagreements": 0}}
+                      "psnr_db": float("inf"), "max_pixel_diff": 0.0, "hit_disagreements": 0,
+                      "null_disagreements": 0}}
     images = {"exact": first["img_x"]}
     for k, ps in passes.items():
         p = ps[0]
@@ -684,7 +686,8 @@ TABLE_CSV = ("scene", "view", "row", "label", "rays_traced", "object_rays", "tra
              "newton_iters", "fallback_pairs", "exact_first_hits", "exact_mirror_hits",
              "mirror_newton_cpu_s", "samples_gathered",
              "angle_mean_deg", "angle_p99_deg", "angle_max_deg", "psnr_db", "max_pixel_diff",
-             "hit_disagreements", "viewpoint_depth", "direction_depth", "viewpoint_refine",
+             "hit_disagreements", "null_disagreements", "viewpoint_depth", "direction_depth",
+             "viewpoint_refine",
              "tolerance", "bake_s",
              "bake_cpu_s", "cache_bytes", "tree_samples")
 SWEEP_CSV = ("scene", "view", "sweep", "viewpoint_depth", "direction_depth", "tolerance",
@@ -773,8 +776,8 @@ def tables_markdown(result) -> str:
                   f"{DEFAULT_MAX_ERROR_DEG:g} deg, % of object | object-only CPU s "
                   "| total CPU s | object-only speed-up | query's own work, % of exact "
                   "object-only | pairs | Newton it | samples gathered | mean / p99 / max err deg "
-                  "| PSNR dB |",
-                  "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                  "| wrong hit / null | PSNR dB |",
+                  "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for r in rows:
             err = "-" if r["row"] == "exact" else _err3(r)
             own = "-" if r["row"] == "exact" else f"{100 * r['query_own_fraction']:.1f}"
@@ -785,6 +788,7 @@ def tables_markdown(result) -> str:
                 f"{r['object_cpu_s']:.2f} | "
                 f"{r['total_cpu_s']:.2f} | {r['object_speedup']:.2f}x | {own} | {r['pairs']:,} | "
                 f"{r['newton_iters']:,} | {r['samples_gathered']:,} | {err} | "
+                f"{r['hit_disagreements']} / {r['null_disagreements']} | "
                 f"{_fmt(r['psnr_db'], '{:.1f}')} |")
         lines.append("")
     lines += ["**Bake and break-even** (CPU seconds per frame; N* = frames after which bake + N "

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..parallel import map_chunks, workers_default
 from ..ritree.interp import angle_between
-from ..ritree.query import (ANSWER_NAMES, EXTRAPOLATED_S, FULL, NULL_S, OUTSIDE, TRACED,
+from ..ritree.query import (ANSWER_NAMES, EXTRAPOLATED_S, FULL, OUTSIDE, TRACED,
                            TRACING_STAGES, WHY_NAMES, TreeQuery)
 from .camera import camera_rays
 from .exact import RenderResult, SceneTracer, peak_rss_mib, render_pixels, share_size
@@ -81,8 +81,7 @@ def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
             interp = (box["ans"] >= FULL) & (box["ans"] <= EXTRAPOLATED_S) & ri.hit & rx.hit \
                 & ~rx.null
             err[cand_i[interp]] = np.degrees(angle_between(ri.out_dir[interp], rx.out_dir[interp]))
-            out["hit_disagree"] = int(np.sum(ri.hit != rx.hit))
-            out["null_disagree"] = int(np.sum((box["ans"] == NULL_S) & ~rx.null))
+            out["hit_disagree"], out["null_disagree"] = disagreements(ri, rx)
         return col, col_x, answers, whys, err, out, hit_i
 
     workers = workers_default() if workers is None else workers
@@ -135,7 +134,7 @@ def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
             "angle_error_deg_p99": round(float(np.percentile(e, 99)), 5) if len(e) else None,
             "angle_error_deg_max": round(float(e.max()), 5) if len(e) else None,
             "hit_disagreements": sum(p[5]["hit_disagree"] for p in parts),
-            "null_answers_not_null": sum(p[5]["null_disagree"] for p in parts),
+            "null_disagreements": sum(p[5]["null_disagree"] for p in parts),
             "psnr_db": round(psnr(img, exact), 3),
             "max_pixel_diff": round(float(np.abs(_clip(img) - _clip(exact)).max()), 5)})
         stats["exact_counts"] = sx
@@ -161,6 +160,13 @@ def _sum(dicts):
 
 def _clip(img):
     return np.clip(img, 0.0, 1.0)
+
+
+def disagreements(ri, rx) -> tuple[int, int]:
+    """(hit, null) disagreements of the answers ``ri`` with the exact results ``rx`` of the
+    same rays (ObjectRays): rays answered as hitting the object that miss it, or the other way
+    round; rays answered null (trapped inside) that leave it, or the other way round."""
+    return int(np.sum(ri.hit != rx.hit)), int(np.sum(ri.null != rx.null))
 
 
 def psnr(a, b) -> float:

@@ -6,11 +6,13 @@ import csv
 import json
 import math
 
+import numpy as np
 import pytest
 
 from riray.bench.plots import pareto_front
 from riray.bench.ritree_bench import ROWS, BenchConfig, config_from_args
 from riray.cli import main
+from riray.render.interpolated import disagreements
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -69,6 +71,10 @@ def test_tables_consistent(bench):
             if r["angle_mean_deg"]:
                 assert 0 <= float(r["angle_mean_deg"]) <= float(r["angle_p99_deg"]) \
                     <= float(r["angle_max_deg"]) + 1e-9
+            # wrong kinds of answer are answered rays (traced ones are exact)
+            answered = int(r["object_rays"]) - int(r["rays_traced"])
+            assert 0 <= int(r["hit_disagreements"]) <= answered
+            assert 0 <= int(r["null_disagreements"]) <= answered
         # the deeper tree is its own bake, at the configured depths
         vp, dd, vr = res["config"]["deeper_tree"]
         t = rs["deeper"]
@@ -101,8 +107,10 @@ def test_tables_consistent(bench):
         assert (j["scene"], j["view"], j["row"]) == (r["scene"], r["view"], r["row"])
         assert j["rays_traced"] == int(r["rays_traced"]) and j["pairs"] == int(r["pairs"])
         assert math.isclose(j["object_cpu_s"], float(r["object_cpu_s"]))
+        assert j["null_disagreements"] == int(r["null_disagreements"])
     md = (bench / "tables.md").read_text()
     assert "| close | ray traced |" in md and "break-even" in md
+    assert "| wrong hit / null |" in md and md.count(" | 0 / 0 | ") >= len(rows) // 2
     for a in res["amortization"]:
         be = a["break_even_frames"]
         saved = a["exact_frame_cpu_s"] - a["interp_frame_cpu_s"]
@@ -147,6 +155,19 @@ def test_sweeps_consistent(bench):
     for vp in q.vp_depths:
         s = [int(r["tree_samples"]) for r in depth if int(r["viewpoint_depth"]) == vp]
         assert s == sorted(s)
+
+
+def test_disagreements_count_both_directions():
+    """A hit answered for a miss and a miss for a hit; null answered for a ray that leaves and
+    an exit answered for a trapped ray: each counts once, agreement not at all."""
+    class Rays:
+        def __init__(self, hit, null):
+            self.hit, self.null = np.array(hit, bool), np.array(null, bool)
+
+    answer = Rays([1, 0, 1, 1, 1, 0], [0, 0, 1, 0, 1, 0])
+    exact = Rays([0, 1, 1, 1, 1, 0], [0, 0, 0, 1, 1, 0])
+    assert disagreements(answer, exact) == (2, 2)
+    assert disagreements(exact, exact) == (0, 0)
 
 
 def test_pareto_front():
