@@ -16,8 +16,8 @@ Layout of format version 2 (docs/tree-format.md; all integers little-endian):
 Writes are atomic (temporary file beside the target, fsync, os.replace). Reads check the
 structure always (magic, version, header crc32, the array table, the file size) and, with
 ``verify``, every array's crc32 and the whole-file sha256, streaming in ``BLOCK`` byte blocks.
-Filtered arrays are encoded and decoded on up to ``os.cpu_count()`` threads (lzma releases the
-GIL).
+Filtered arrays are encoded on up to ``filters.ENCODE_THREADS`` and decoded on up to
+``os.cpu_count()`` threads (lzma releases the GIL).
 """
 
 from __future__ import annotations
@@ -98,13 +98,14 @@ def _threads(n: int) -> int:
 def _encode_all(views: list[np.ndarray], chains: list[tuple[str, ...]]) -> list:
     """Each array's stored bytes: the filtered encoding where it is smaller, else the raw view
     (whose chain becomes empty). Every array's xz chunks share one pool of up to
-    os.cpu_count() threads, largest arrays first."""
+    os.cpu_count() threads (at most filters.ENCODE_THREADS: memory), largest arrays first."""
     todo = sorted((i for i, c in enumerate(chains) if c), key=lambda i: -views[i].nbytes)
     out: list = [v.reshape(-1).view(np.uint8) for v in views]
     if not todo:
         return out
-    with ThreadPoolExecutor(_threads(sum(v.nbytes for v in views) // F.CHUNK + len(todo))) \
-            as pool:
+    with ThreadPoolExecutor(min(F.ENCODE_THREADS, _threads(len(todo)
+                                                           + sum(v.nbytes for v in views)
+                                                           // F.CHUNK))) as pool:
         pending = {}
         for i in todo:
             data = F.prefilter(views[i], chains[i])

@@ -8,7 +8,7 @@ A stored array may pass through a chain of filters, always in this order:
   lzma     xz streams (LZMA2, no integrity check of their own: the table's crc32 covers the
            decoded array, the trailer's sha256 the file), one per ``CHUNK`` bytes of the
            filtered array, concatenated (as a concatenated .xz file is), so that one array's
-           chunks compress on several threads
+           chunks compress on several threads; each stream's header names its dictionary
 A chain is any subsequence of ``ORDER``; the empty chain stores the raw bytes (and only those
 can be memory-mapped). Decoding undoes the chain in reverse order.
 """
@@ -20,10 +20,14 @@ import lzma
 import numpy as np
 
 ORDER = ("delta", "shuffle", "lzma")
-LZMA_PRESET = 6          # xz's default: 8 MiB dictionary, which reaches the long repeats of a
-                         # tree's sample codes (preset 1's 1 MiB gives 1.8x larger full trees)
-CHUNK = 32 << 20         # bytes of filtered data per xz stream: 16 MiB and up lose under 0.5 %
-                         # on a 4/5 full tree's arrays, 4 MiB up to 60 % (matches cut off)
+LZMA_PRESET = 6          # xz's default match finder and effort; its dictionary is set below
+DICT_MAX = 64 << 20      # bytes: the longest repeats of a full tree's codes (the viewpoints of
+                         # a symmetric object's faces) lie tens of MiB apart: on glass_sphere's
+                         # 5/6 full tree a 32-128 MiB dictionary stores the hit points in 0.56
+                         # bytes a sample, xz's default 8 MiB in 1.33 (1 MiB: 1.8x larger still)
+CHUNK = 256 << 20        # bytes of filtered data per xz stream (one thread each): long enough
+                         # for the dictionary, short enough to spread a big array over cores
+ENCODE_THREADS = 4       # at most: each encoder takes about 11 dictionaries of memory (0.7 GB)
 
 
 class FilterError(ValueError):
@@ -54,8 +58,12 @@ def _unsigned(dtype: np.dtype) -> np.dtype:
 
 
 def compress(data) -> bytes:
-    """One xz stream of ``data`` (bytes-like: one chunk)."""
-    return lzma.compress(data, format=lzma.FORMAT_XZ, check=lzma.CHECK_NONE, preset=LZMA_PRESET)
+    """One xz stream of ``data`` (bytes-like: one chunk), with a dictionary no longer than the
+    data (a longer one costs memory and time and finds nothing more)."""
+    size = min(DICT_MAX, max(len(data), 4096))
+    return lzma.compress(data, format=lzma.FORMAT_XZ, check=lzma.CHECK_NONE,
+                         filters=[{"id": lzma.FILTER_LZMA2, "preset": LZMA_PRESET,
+                                   "dict_size": size}])
 
 
 def chunks(data) -> list:
