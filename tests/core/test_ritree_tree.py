@@ -1218,6 +1218,13 @@ def test_file_is_the_same_tree_in_first_use_order_and_compressed(tmp_path, spher
                                   want[hit] if k in PackedSamples.CODES else want), k
     raw = sum(a.nbytes for a in tree.arrays().values())
     assert path.stat().st_size < raw / 2
+    # a corner the bake did not sample (-1) stays unsampled in the file's numbering
+    odd = copy.copy(tree)
+    odd.dir_forest = copy.deepcopy(tree.dir_forest)
+    leaf_nodes = np.flatnonzero(leaf)
+    odd.dir_forest.corner[leaf_nodes[5], 2] = -1
+    stored = odd.arrays()["dir.leaf_corner"]
+    assert stored[5, 2] == -1 and np.all(np.delete(stored.ravel(), 5 * 4 + 2) >= 0)
 
 
 def test_cache_round_trip_close_to_baked_tree(tmp_path, sphere_st, sphere_trees):
