@@ -88,11 +88,11 @@ def error(path, match, exc=TreeCacheError, **kw):
 # --------------------------------------------------------------------------- round trips
 def compressible(dtype, shape):
     """Smooth integers (that the filters shrink) or repeated bytes."""
-    if np.dtype(dtype).kind in "iu":
-        info = np.iinfo(dtype)
-        ramp = np.arange(int(np.prod(shape)), dtype=np.int64) * 7 + int(info.max) - 20
-        return (ramp % (int(info.max) - int(info.min) + 1) + int(info.min)).astype(dtype) \
-            .reshape(shape)
+    if np.dtype(dtype).kind in "iu":          # a ramp that wraps around the type's range
+        size = np.dtype(dtype).itemsize
+        start = np.uint64(2 ** (8 * size) - 20)
+        ramp = np.arange(int(np.prod(shape)), dtype=np.uint64) * np.uint64(7) + start
+        return ramp.astype(f"<u{size}").view(dtype).reshape(shape)
     return np.resize(random_array(dtype, (5,)), shape)
 
 
