@@ -28,7 +28,8 @@ import math
 import os
 import struct
 import zlib
-from concurrent.futures import ThreadPoolExecutor
+import threading
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, fields
 from typing import BinaryIO
 
@@ -47,6 +48,7 @@ _TRAILER = struct.Struct("<8s32s")      # end mark, sha256
 END_MARK = b"RIRAYEND"
 ALIGN = 64                              # bytes; array offsets and the payload start
 BLOCK = 4 << 20                         # bytes per streamed read/write/hash block
+POLL_S = 0.2                            # seconds between looks at a save's cancel()
 MAX_HEADER_BYTES = 256 << 20            # a larger header length is corruption, not a tree
 # Dtypes a tree may hold (little-endian; bool and bytes have no byte order).
 DTYPES = frozenset(["|b1", "|i1", "|u1", "<i2", "<u2", "<i4", "<u4", "<i8", "<u8", "<f4", "<f8"])
@@ -55,6 +57,10 @@ FINGERPRINT_TAG = b"riray-fingerprint-v1\x00"
 
 class TreeCacheError(ValueError):
     """A ``.rit`` file that cannot be written or read; the message names the file and problem."""
+
+
+class SaveCancelled(Exception):
+    """save_tree gave up because its ``cancel()`` turned true; nothing was written."""
 
 
 class StaleTreeError(TreeCacheError):
@@ -95,33 +101,44 @@ def _threads(n: int) -> int:
     return max(1, min(n, os.cpu_count() or 1))
 
 
-def _encode_all(views: list[np.ndarray], chains: list[tuple[str, ...]]) -> list:
+def _encode_all(views: list[np.ndarray], chains: list[tuple[str, ...]], cancel) -> list:
     """Each array's stored bytes: the filtered encoding where it is smaller, else the raw view
     (whose chain becomes empty). Every array's xz chunks share one pool of up to
-    os.cpu_count() threads (at most filters.ENCODE_THREADS: memory), largest arrays first."""
+    os.cpu_count() threads (at most filters.ENCODE_THREADS: memory), largest arrays first.
+    ``cancel()`` true (polled every POLL_S), or an interrupt, stops every encoder within one
+    piece and raises SaveCancelled (or the interrupt)."""
     todo = sorted((i for i, c in enumerate(chains) if c), key=lambda i: -views[i].nbytes)
     out: list = [v.reshape(-1).view(np.uint8) for v in views]
     if not todo:
         return out
-    with ThreadPoolExecutor(min(F.ENCODE_THREADS, _threads(len(todo)
-                                                           + sum(v.nbytes for v in views)
-                                                           // F.CHUNK))) as pool:
-        pending = {}
-        for i in todo:
-            data = F.prefilter(views[i], chains[i])
-            pending[i] = [pool.submit(F.compress, c) for c in F.chunks(data)] \
-                if "lzma" in chains[i] else data
-        for i in todo:
-            p = pending[i]
-            data = b"".join(f.result() for f in p) if isinstance(p, list) else p
-            if len(data) < views[i].nbytes:
-                out[i] = np.frombuffer(data, np.uint8)
-            else:
-                chains[i] = ()
+    stop = threading.Event()
+    threads = min(F.ENCODE_THREADS, _threads(len(todo) + sum(v.nbytes for v in views) // F.CHUNK))
+    with ThreadPoolExecutor(threads) as pool:
+        try:
+            pending = {}
+            for i in todo:
+                data = F.prefilter(views[i], chains[i])
+                pending[i] = [pool.submit(F.compress, c, stop.is_set) for c in F.chunks(data)] \
+                    if "lzma" in chains[i] else data
+            jobs = [f for p in pending.values() if isinstance(p, list) for f in p]
+            while wait(jobs, timeout=POLL_S).not_done:
+                if cancel is not None and cancel():
+                    raise SaveCancelled("save cancelled")
+            for i in todo:
+                p = pending[i]
+                data = b"".join(f.result() for f in p) if isinstance(p, list) else p
+                if len(data) < views[i].nbytes:
+                    out[i] = np.frombuffer(data, np.uint8)
+                else:
+                    chains[i] = ()
+        except BaseException:
+            stop.set()                       # running encoders give up within one piece
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
     return out
 
 
-def _prepare(path: str, header, arrays, filters) -> tuple[bytes, list[np.ndarray]]:
+def _prepare(path: str, header, arrays, filters, cancel) -> tuple[bytes, list[np.ndarray]]:
     """Validate the inputs, encode the filtered arrays; return the header bytes (preamble ..
     padding) and the stored bytes of each array."""
     if not isinstance(header, dict):
@@ -155,7 +172,7 @@ def _prepare(path: str, header, arrays, filters) -> tuple[bytes, list[np.ndarray
     unknown = sorted(set(filters) - set(arrays), key=str)
     if unknown:
         raise TreeCacheError(f"{path}: filters name arrays that are not saved: {unknown}")
-    views = _encode_all(views, chains)
+    views = _encode_all(views, chains, cancel)
     offset = 0
     for entry, view, chain in zip(table, views, chains):
         entry.update(offset=offset, filters=list(chain), stored=view.size)
@@ -185,17 +202,18 @@ def _write_payload(f: BinaryIO, sha, views: list[np.ndarray]) -> None:
 
 
 def save_tree(path: str | os.PathLike, header: dict, arrays: dict[str, np.ndarray],
-              filters: dict[str, tuple[str, ...]] | None = None) -> None:
+              filters: dict[str, tuple[str, ...]] | None = None, cancel=None) -> None:
     """Write ``header`` (JSON-serializable dict) and ``arrays`` to the ``.rit`` file ``path``.
 
     ``filters`` maps array names to filter chains (filters.py); an array whose encoding is not
     smaller than its bytes, or that is not named, is stored raw. Everything is validated and
-    encoded before anything is written. The file is written beside ``path`` under
+    encoded before anything is written; ``cancel()`` turning true while the arrays are encoded
+    (or Ctrl-C) stops within about a second (SaveCancelled), leaving ``path`` untouched. The file is written beside ``path`` under
     a temporary name, fsynced and moved into place with os.replace: on any error or interrupt the
     temporary file is removed and an existing file at ``path`` is untouched.
     """
     path = os.fspath(path)
-    head, views = _prepare(path, header, arrays, filters)
+    head, views = _prepare(path, header, arrays, filters, cancel)
     tmp = f"{path}.{os.urandom(6).hex()}.tmp"
     f = open(tmp, "xb")
     try:

@@ -28,10 +28,15 @@ DICT_MAX = 64 << 20      # bytes: the longest repeats of a full tree's codes (th
 CHUNK = 256 << 20        # bytes of filtered data per xz stream (one thread each): long enough
                          # for the dictionary, short enough to spread a big array over cores
 ENCODE_THREADS = 4       # at most: each encoder takes about 11 dictionaries of memory (0.7 GB)
+PIECE = 4 << 20          # bytes fed to an encoder between two looks at its stop flag (~1 s)
 
 
 class FilterError(ValueError):
     """A filter chain that is not allowed for the array, or stored bytes that do not decode."""
+
+
+class Stopped(Exception):
+    """An encoding given up because its ``stop`` callable turned true."""
 
 
 def check_chain(chain, dtype: np.dtype) -> tuple[str, ...]:
@@ -57,13 +62,20 @@ def _unsigned(dtype: np.dtype) -> np.dtype:
     return np.dtype(f"<u{dtype.itemsize}")
 
 
-def compress(data) -> bytes:
+def compress(data, stop=None) -> bytes:
     """One xz stream of ``data`` (bytes-like: one chunk), with a dictionary no longer than the
-    data (a longer one costs memory and time and finds nothing more)."""
-    size = min(DICT_MAX, max(len(data), 4096))
-    return lzma.compress(data, format=lzma.FORMAT_XZ, check=lzma.CHECK_NONE,
-                         filters=[{"id": lzma.FILTER_LZMA2, "preset": LZMA_PRESET,
-                                   "dict_size": size}])
+    data (a longer one costs memory and time and finds nothing more). Fed ``PIECE`` bytes at a
+    time: Stopped as soon as ``stop()`` (if given) is true between two pieces."""
+    enc = lzma.LZMACompressor(format=lzma.FORMAT_XZ, check=lzma.CHECK_NONE,
+                              filters=[{"id": lzma.FILTER_LZMA2, "preset": LZMA_PRESET,
+                                        "dict_size": min(DICT_MAX, max(len(data), 4096))}])
+    view, out = memoryview(data), []
+    for i in range(0, len(view), PIECE):
+        if stop is not None and stop():
+            raise Stopped()
+        out.append(enc.compress(view[i:i + PIECE]))
+    out.append(enc.flush())
+    return b"".join(out)
 
 
 def chunks(data) -> list:

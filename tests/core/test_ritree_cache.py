@@ -8,6 +8,7 @@ import json
 import lzma
 import os
 import struct
+import time
 import zlib
 
 import numpy as np
@@ -168,6 +169,48 @@ def test_chunked_streams_round_trip(tmp_path, monkeypatch):
         filters.decode(first, ("lzma",), a.dtype, (2000,))
     assert np.array_equal(filters.decode(first + first, ("lzma",), a.dtype, (2000,)),
                           np.tile(a[:1000], 2))
+
+
+@pytest.mark.parametrize("how", ["cancel", "interrupt"])
+def test_cancelled_save_stops_its_encoders_and_keeps_the_old_file(tree, monkeypatch, how):
+    """cancel() turning true (or Ctrl-C) while the chunks are encoded: the running encoders see
+    their stop flag, the queued chunks never start, and the previous file stays as it was."""
+    path = tree[0]
+    before = path.read_bytes()
+    monkeypatch.setattr(filters, "CHUNK", 1000)
+    started = []
+
+    def endless(chunk, stop):                # an encoder that only ends when told to stop
+        started.append(len(chunk))
+        while not stop():
+            time.sleep(0.005)
+        raise filters.Stopped()
+
+    monkeypatch.setattr(filters, "compress", endless)
+
+    def cancel():
+        if how == "interrupt":
+            raise KeyboardInterrupt
+        return True
+
+    with pytest.raises(KeyboardInterrupt if how == "interrupt" else cache.SaveCancelled):
+        cache.save_tree(path, {}, {"a": np.arange(20000, dtype=np.int64)}, {"a": ("lzma",)},
+                        cancel=cancel)
+    assert 1 <= len(started) <= filters.ENCODE_THREADS < 160      # 160 chunks queued
+    assert path.read_bytes() == before and os.listdir(path.parent) == [path.name]
+
+
+def test_compress_stops_between_pieces():
+    data = bytes(3 * filters.PIECE)
+    calls = []
+
+    def stop():
+        calls.append(1)
+        return len(calls) > 2                # true before the third piece
+    with pytest.raises(filters.Stopped):
+        filters.compress(data, stop)
+    assert len(calls) == 3
+    assert lzma.decompress(filters.compress(data, lambda: False)) == data
 
 
 def test_lzma_stream_longer_than_the_table_is_refused():
