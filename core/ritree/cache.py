@@ -49,6 +49,10 @@ END_MARK = b"RIRAYEND"
 ALIGN = 64                              # bytes; array offsets and the payload start
 BLOCK = 4 << 20                         # bytes per streamed read/write/hash block
 POLL_S = 0.2                            # seconds between looks at a save's cancel()
+MAX_DIMS = 32                           # numpy's limit on an array's dimensions
+MAX_RATIO = 1 << 16                     # a filtered array may claim at most this many times
+                                        # its stored bytes (xz reaches about 7,000 on constant
+                                        # data): a few stored bytes cannot ask for terabytes
 MAX_HEADER_BYTES = 256 << 20            # a larger header length is corruption, not a tree
 # Dtypes a tree may hold (little-endian; bool and bytes have no byte order).
 DTYPES = frozenset(["|b1", "|i1", "|u1", "<i2", "<u2", "<i4", "<u4", "<i8", "<u8", "<f4", "<f8"])
@@ -105,8 +109,8 @@ def _encode_all(views: list[np.ndarray], chains: list[tuple[str, ...]], cancel) 
     """Each array's stored bytes: the filtered encoding where it is smaller, else the raw view
     (whose chain becomes empty). Every array's xz chunks share one pool of up to
     os.cpu_count() threads (at most filters.ENCODE_THREADS: memory), largest arrays first.
-    ``cancel()`` true (polled every POLL_S), or an interrupt, stops every encoder within one
-    piece and raises SaveCancelled (or the interrupt)."""
+    ``cancel()`` true (polled between arrays and every POLL_S), or an interrupt, stops every
+    encoder within one piece and raises SaveCancelled (or the interrupt)."""
     todo = sorted((i for i, c in enumerate(chains) if c), key=lambda i: -views[i].nbytes)
     out: list = [v.reshape(-1).view(np.uint8) for v in views]
     if not todo:
@@ -117,6 +121,8 @@ def _encode_all(views: list[np.ndarray], chains: list[tuple[str, ...]], cancel) 
         try:
             pending = {}
             for i in todo:
+                if cancel is not None and cancel():
+                    raise SaveCancelled("save cancelled")
                 data = F.prefilter(views[i], chains[i])
                 pending[i] = [pool.submit(F.compress, c, stop.is_set) for c in F.chunks(data)] \
                     if "lzma" in chains[i] else data
@@ -146,6 +152,8 @@ def _prepare(path: str, header, arrays, filters, cancel) -> tuple[bytes, list[np
     if not isinstance(arrays, dict):
         raise TreeCacheError(f"{path}: arrays must be a dict, got {type(arrays).__name__}")
     filters = {} if filters is None else filters
+    if not isinstance(filters, dict):
+        raise TreeCacheError(f"{path}: filters must be a dict, got {type(filters).__name__}")
     table, views, chains = [], [], []
     for name, arr in arrays.items():
         if not isinstance(name, str) or not name:
@@ -208,9 +216,10 @@ def save_tree(path: str | os.PathLike, header: dict, arrays: dict[str, np.ndarra
     ``filters`` maps array names to filter chains (filters.py); an array whose encoding is not
     smaller than its bytes, or that is not named, is stored raw. Everything is validated and
     encoded before anything is written; ``cancel()`` turning true while the arrays are encoded
-    (or Ctrl-C) stops within about a second (SaveCancelled), leaving ``path`` untouched. The file is written beside ``path`` under
-    a temporary name, fsynced and moved into place with os.replace: on any error or interrupt the
-    temporary file is removed and an existing file at ``path`` is untouched.
+    (or Ctrl-C) stops within a few seconds (SaveCancelled), leaving ``path`` untouched. The file
+    is written beside ``path`` under a temporary name, fsynced and moved into place with
+    os.replace: on any error or interrupt the temporary file is removed and an existing file at
+    ``path`` is untouched.
     """
     path = os.fspath(path)
     head, views = _prepare(path, header, arrays, filters, cancel)
@@ -262,9 +271,10 @@ def _entries(path: str, table, payload: int) -> list[_Entry]:
             raise bad(f"entry {i}: missing or duplicate name {name!r}")
         if not isinstance(dt, str) or dt not in DTYPES:
             raise bad(f"array {name!r}: dtype {dt!r} is not one of {sorted(DTYPES)}")
-        if not isinstance(shape, list) or any(type(x) is not int or x < 0 for x in ints):
+        if not isinstance(shape, list) or len(shape) > MAX_DIMS \
+                or any(type(x) is not int or x < 0 for x in ints):
             raise bad(f"array {name!r}: shape/offset/nbytes/stored/crc32 must be non-negative "
-                      "integers")
+                      f"integers, at most {MAX_DIMS} dimensions")
         dtype = np.dtype(dt)
         if e["nbytes"] != math.prod(shape) * dtype.itemsize:
             raise bad(f"array {name!r}: nbytes {e['nbytes']} != shape {shape} x {dtype.itemsize}")
@@ -277,6 +287,9 @@ def _entries(path: str, table, payload: int) -> list[_Entry]:
         if not chain and e["stored"] != e["nbytes"]:
             raise bad(f"array {name!r}: stored {e['stored']} != nbytes {e['nbytes']} without "
                       "filters")
+        if chain and e["nbytes"] > max(MAX_RATIO * e["stored"], 1 << 20):
+            raise bad(f"array {name!r}: nbytes {e['nbytes']} is more than {MAX_RATIO} times "
+                      f"its stored {e['stored']}")
         if e["offset"] % ALIGN or e["offset"] + e["stored"] > payload or e["crc32"] >> 32:
             raise bad(f"array {name!r}: offset {e['offset']} + stored {e['stored']} is unaligned "
                       f"or outside the {payload}-byte payload, or crc32 out of range")
@@ -396,6 +409,9 @@ def _decode_all(path: str, layout: _Layout, stored: dict, verify: bool,
         except F.FilterError as exc:
             raise TreeCacheError(f"{path}: corrupt: array {e.name!r} does not decode "
                                  f"({exc})") from None
+        except MemoryError:
+            raise TreeCacheError(f"{path}: array {e.name!r} ({e.nbytes} bytes) does not fit in "
+                                 "memory") from None
         if verify and zlib.crc32(arr.reshape(-1).view(np.uint8)) != e.crc32:
             raise TreeCacheError(f"{path}: corrupt: array {e.name!r} checksum (crc32) mismatch")
         arr.flags.writeable = writeable

@@ -8,7 +8,8 @@ A stored array may pass through a chain of filters, always in this order:
   lzma     xz streams (LZMA2, no integrity check of their own: the table's crc32 covers the
            decoded array, the trailer's sha256 the file), one per ``CHUNK`` bytes of the
            filtered array, concatenated (as a concatenated .xz file is), so that one array's
-           chunks compress on several threads; each stream's header names its dictionary
+           chunks compress on several threads; each stream's header names its dictionary;
+           every stream but the last decodes to at least ``MIN_STREAM`` bytes
 A chain is any subsequence of ``ORDER``; the empty chain stores the raw bytes (and only those
 can be memory-mapped). Decoding undoes the chain in reverse order.
 """
@@ -16,6 +17,7 @@ can be memory-mapped). Decoding undoes the chain in reverse order.
 from __future__ import annotations
 
 import lzma
+import math
 
 import numpy as np
 
@@ -27,8 +29,14 @@ DICT_MAX = 64 << 20      # bytes: the longest repeats of a full tree's codes (th
                          # bytes a sample, xz's default 8 MiB in 1.33 (1 MiB: 1.8x larger still)
 CHUNK = 256 << 20        # bytes of filtered data per xz stream (one thread each): long enough
                          # for the dictionary, short enough to spread a big array over cores
+MIN_STREAM = 1 << 20     # bytes every stream but the last must decode to (the format's rule:
+                         # it bounds the number of streams a reader walks)
 ENCODE_THREADS = 4       # at most: each encoder takes about 11 dictionaries of memory (0.7 GB)
-PIECE = 4 << 20          # bytes fed to an encoder between two looks at its stop flag (~1 s)
+PIECE = 1 << 20          # bytes fed to an encoder between two looks at its stop flag (up to
+                         # a few seconds: liblzma buffers its input and works unevenly)
+FEED = 16 << 20          # bytes of input and of output per decoder call
+MEMLIMIT = 1 << 30       # bytes of decoder memory a stream may ask for (64 MiB dictionaries
+                         # need about 65 MiB; a crafted header could ask for 1.5 GiB)
 
 
 class FilterError(ValueError):
@@ -79,7 +87,8 @@ def compress(data, stop=None) -> bytes:
 
 
 def chunks(data) -> list:
-    """``data`` (bytes-like) cut into the chunks that ``lzma`` compresses one by one."""
+    """``data`` (bytes-like) cut into the chunks that ``lzma`` compresses one by one (every one
+    but the last at least MIN_STREAM bytes)."""
     view = memoryview(data)
     return [view[i:i + CHUNK] for i in range(0, len(view), CHUNK)] or [view]
 
@@ -99,11 +108,9 @@ def prefilter(arr: np.ndarray, chain) -> bytes:
     a = np.ascontiguousarray(arr)
     if "delta" in chain:
         rows, cols = _columns(a.shape)
-        cm = np.ascontiguousarray(a.view(_unsigned(a.dtype)).reshape(rows, cols).T)
-        d = np.empty_like(cm)
-        d[:, :1] = cm[:, :1]
-        np.subtract(cm[:, 1:], cm[:, :-1], out=d[:, 1:])      # unsigned: wraps modulo 2^bits
-        a = d
+        cm = a.view(_unsigned(a.dtype)).reshape(rows, cols).T.copy()   # never the caller's
+        cm[:, 1:] = np.diff(cm, axis=1)                       # unsigned: wraps modulo 2^bits
+        a = cm
     if "shuffle" in chain:
         a = np.ascontiguousarray(a.reshape(-1).view(np.uint8).reshape(-1, arr.dtype.itemsize).T)
     return a.tobytes()
@@ -111,41 +118,64 @@ def prefilter(arr: np.ndarray, chain) -> bytes:
 
 def decode(data, chain, dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray:
     """The array that ``encode`` stored as ``data`` (bytes-like); FilterError when it cannot be
-    (a damaged stream, or one that decodes to the wrong number of bytes)."""
+    (a damaged stream, or one that decodes to the wrong number of bytes). Peak memory is about
+    twice the array (plus ``FEED`` bytes)."""
     chain = check_chain(chain, dtype)
-    size = int(np.prod(shape)) * dtype.itemsize
+    size = math.prod(shape) * dtype.itemsize
     if "lzma" in chain:
-        data = _decompress(data, size)
-    buf = np.frombuffer(data, np.uint8)
-    if len(buf) != size:
-        raise FilterError(f"{len(buf)} stored bytes, the table says {size}")
+        buf = _decompress(data, size)
+    else:
+        buf = np.frombuffer(data, np.uint8)
+        if len(buf) != size:
+            raise FilterError(f"{len(buf)} stored bytes, the table says {size}")
+        buf = buf.copy()                                      # writeable, owned
     if "shuffle" in chain:
-        buf = np.ascontiguousarray(buf.reshape(dtype.itemsize, -1).T)
+        buf = np.ascontiguousarray(buf.reshape(dtype.itemsize, -1).T)   # the planes freed
     out = buf.reshape(-1).view(dtype if "delta" not in chain else _unsigned(dtype))
+    del buf
     if "delta" in chain:
         rows, cols = _columns(shape)
-        out = np.cumsum(out.reshape(cols, rows), axis=1, dtype=out.dtype).T   # wraps as it went
-        out = np.ascontiguousarray(out).view(dtype)
+        cm = out.reshape(cols, rows)
+        np.cumsum(cm, axis=1, dtype=cm.dtype, out=cm)            # in place; wraps as it goes
+        out = (np.ascontiguousarray(cm.T) if cols > 1 else cm.reshape(-1)).view(dtype)
     out = out.reshape(shape)
     return out if out.flags.writeable and out.flags.c_contiguous else out.copy()
 
 
-def _decompress(data, size: int) -> bytearray:
-    """The ``size`` bytes that the concatenated xz streams ``data`` decode to; FilterError if
-    they decode to more (stopped at size + 1: no bomb), to fewer, or not at all."""
-    out, rest = bytearray(), bytes(data)
-    while rest or not out:
-        dec = lzma.LZMADecompressor(format=lzma.FORMAT_XZ)
+def _decompress(data, size: int) -> np.ndarray:
+    """The ``size`` bytes (uint8) that the concatenated xz streams ``data`` decode to, written
+    into one buffer; FilterError if they decode to more (stopped at size + 1), to fewer, or not
+    at all, or if a stream before the last decodes to fewer than MIN_STREAM bytes. A stream may
+    not ask for more than MEMLIMIT of decoder memory."""
+    out = np.empty(size, np.uint8)
+    view, pos, n = memoryview(data).cast("B"), 0, 0
+    while True:
+        start = n
+        dec = lzma.LZMADecompressor(format=lzma.FORMAT_XZ, memlimit=MEMLIMIT)
+        piece = b""
         try:
-            out += dec.decompress(rest, max_length=size + 1 - len(out))
+            while not dec.eof:
+                if dec.needs_input:
+                    if pos >= len(view):
+                        raise FilterError("lzma stream does not decode (it ends early)")
+                    piece = view[pos:pos + FEED]
+                    pos += len(piece)
+                else:
+                    piece = b""
+                got = dec.decompress(piece, max_length=min(FEED, size + 1 - n))
+                if n + len(got) > size:
+                    raise FilterError(f"lzma streams decode to more than {size} bytes, the "
+                                      "table's size")
+                out[n:n + len(got)] = np.frombuffer(got, np.uint8)
+                n += len(got)
         except lzma.LZMAError as exc:
             raise FilterError(f"lzma stream does not decode ({exc})") from None
-        if len(out) > size:
-            raise FilterError(f"lzma streams decode to more than {size} bytes, the table's "
-                              "size")
-        if not dec.eof:
-            raise FilterError("lzma stream does not decode (it ends early)")
-        rest = dec.unused_data
-    if len(out) != size:
-        raise FilterError(f"lzma streams decode to {len(out)} bytes, the table says {size}")
+        pos -= len(dec.unused_data)
+        if pos >= len(view):
+            break
+        if n - start < MIN_STREAM:
+            raise FilterError(f"an lzma stream before the last decodes to {n - start} bytes, "
+                              f"fewer than {MIN_STREAM}")
+    if n != size:
+        raise FilterError(f"lzma streams decode to {n} bytes, the table says {size}")
     return out

@@ -157,6 +157,7 @@ def test_chunked_streams_round_trip(tmp_path, monkeypatch):
     """An array longer than a chunk is stored as several xz streams, compressed on several
     threads and decoded one after the other; a file cut after the first stream is refused."""
     monkeypatch.setattr(filters, "CHUNK", 4000)
+    monkeypatch.setattr(filters, "MIN_STREAM", 4000)
     a = np.arange(30000, dtype=np.int32) // 7
     path = tmp_path / "c.rit"
     cache.save_tree(path, {}, {"a": a}, {"a": ("delta", "shuffle", "lzma")})
@@ -169,9 +170,16 @@ def test_chunked_streams_round_trip(tmp_path, monkeypatch):
         filters.decode(first, ("lzma",), a.dtype, (2000,))
     assert np.array_equal(filters.decode(first + first, ("lzma",), a.dtype, (2000,)),
                           np.tile(a[:1000], 2))
+    monkeypatch.setattr(filters, "MIN_STREAM", 4001)       # streams before the last: too short
+    with pytest.raises(filters.FilterError, match="before the last decodes to 4000 bytes"):
+        filters.decode(first + first, ("lzma",), a.dtype, (2000,))
+    empty = filters.compress(b"")
+    assert filters.decode(empty, ("lzma",), a.dtype, (0,)).shape == (0,)
+    with pytest.raises(filters.FilterError, match="before the last decodes to 0 bytes"):
+        filters.decode(empty * 50000, ("lzma",), a.dtype, (0,))   # refused at the first
 
 
-@pytest.mark.parametrize("how", ["cancel", "interrupt"])
+@pytest.mark.parametrize("how", ["cancel", "interrupt", "cancel_first"])
 def test_cancelled_save_stops_its_encoders_and_keeps_the_old_file(tree, monkeypatch, how):
     """cancel() turning true (or Ctrl-C) while the chunks are encoded: the running encoders see
     their stop flag, the queued chunks never start, and the previous file stays as it was."""
@@ -188,15 +196,18 @@ def test_cancelled_save_stops_its_encoders_and_keeps_the_old_file(tree, monkeypa
 
     monkeypatch.setattr(filters, "compress", endless)
 
-    def cancel():
-        if how == "interrupt":
+    def cancel():                           # once an encoder runs ("cancel_first": at once)
+        if how == "interrupt" and started:
             raise KeyboardInterrupt
-        return True
+        return bool(started) or how == "cancel_first"
 
     with pytest.raises(KeyboardInterrupt if how == "interrupt" else cache.SaveCancelled):
         cache.save_tree(path, {}, {"a": np.arange(20000, dtype=np.int64)}, {"a": ("lzma",)},
                         cancel=cancel)
-    assert 1 <= len(started) <= filters.ENCODE_THREADS < 160      # 160 chunks queued
+    if how == "cancel_first":                # seen before the first array is even filtered
+        assert started == []
+    else:
+        assert 1 <= len(started) <= filters.ENCODE_THREADS < 160      # 160 chunks queued
     assert path.read_bytes() == before and os.listdir(path.parent) == [path.name]
 
 
@@ -367,6 +378,9 @@ def test_malformed_header(tree):
     (lambda a: a[0].update(filters=["delta"]), "integer dtype"),
     (lambda a: a[1].update(stored=4), "stored 4 != nbytes 48 without filters"),
     (lambda a: a[4].update(stored=10**9), "outside"),
+    (lambda a: a[1].update(shape=[1] * 33), "at most 32 dimensions"),
+    (lambda a: a[4].update(shape=[2**32, 2**32, 3], nbytes=3 * 2**65),
+     "more than 65536 times its stored"),
 ])
 def test_inconsistent_table(tree, change, message):
     path = tree[0]
@@ -406,6 +420,8 @@ def test_save_validates_before_writing(tmp_path, header, arrays, message):
     with pytest.raises(TreeCacheError, match=message):
         cache.save_tree(tmp_path / "v.rit", header, arrays, {"y": ("delta", "lzma")})
     assert os.listdir(tmp_path) == []
+    with pytest.raises(TreeCacheError, match="filters must be a dict"):
+        cache.save_tree(tmp_path / "v.rit", {}, {}, [("lzma",)])
 
 
 @pytest.mark.parametrize("fail", ["payload", "fsync", "replace"])
