@@ -166,7 +166,7 @@ def _bake(scene, args, params, out, st, cluster=None):
     bar = _progress("bake")
     tree = bake(st, params, region, progress=lambda f, msg: bar(f), workers=args.workers,
                 cluster=cluster)
-    ritree.save(tree, out)
+    ritree.save(tree, out, progress=_progress("save (compressing)"))
     return tree
 
 

@@ -4,7 +4,7 @@ Blender *and* in the bake worker process.
 The add-on only ever calls the functions below:
 
     bake_tree(scene, params, progress, cancel, scheduler) -> RITree   (worker process)
-    save_tree(tree, path, meta, cancel) / read_header(path) / load_tree(path)
+    save_tree(tree, path, meta, cancel, progress) / read_header(path) / load_tree(path)
     estimate_bake(scene, params) -> {"time_s", "bytes", "rays"}
     tree_object_fn(scene_tracer, tree, header, options) -> object_fn   (engine)
 
@@ -81,11 +81,12 @@ def _bake(scene, params, progress, cancel, cluster):
         raise BakeCancelled() from exc
 
 
-def save_tree(tree, path: str, meta: dict, cancel=None) -> int:
+def save_tree(tree, path: str, meta: dict, cancel=None, progress=None) -> int:
     """Write the cache file atomically (see core/ritree/cache.py); BakeCancelled when
-    ``cancel()`` turns true while it is compressed. Returns its size."""
+    ``cancel()`` turns true while it is compressed; ``progress(fraction)`` follows the
+    compression. Returns its size."""
     try:
-        ritree.save(tree, path, {"addon": meta}, cancel)
+        ritree.save(tree, path, {"addon": meta}, cancel, progress)
     except ritree_cache.SaveCancelled as exc:
         raise BakeCancelled() from exc
     return os.path.getsize(path)

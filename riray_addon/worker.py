@@ -93,7 +93,8 @@ def run(job_dir: str) -> int:
             raise backend.BakeCancelled()
         meta = dict(job.get("meta", {}))
         meta["bake_s"] = time.time() - t0
-        size = backend.save_tree(tree, output, meta, cancel)
+        size = backend.save_tree(tree, output, meta, cancel,   # the bake is done: 100 %
+                                 lambda f: progress(1.0, f"compressing the cache {100 * f:.0f}%"))
         progress(1.0, "done")
         _write_json(result_path, {"status": "done", "bytes": size, "time": time.time() - t0})
         return 0

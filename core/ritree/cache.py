@@ -105,29 +105,43 @@ def _threads(n: int) -> int:
     return max(1, min(n, os.cpu_count() or 1))
 
 
-def _encode_all(views: list[np.ndarray], chains: list[tuple[str, ...]], cancel) -> list:
+def _encode_all(views: list[np.ndarray], chains: list[tuple[str, ...]], cancel,
+                progress) -> list:
     """Each array's stored bytes: the filtered encoding where it is smaller, else the raw view
     (whose chain becomes empty). Every array's xz chunks share one pool of up to
     os.cpu_count() threads (at most filters.ENCODE_THREADS: memory), largest arrays first.
     ``cancel()`` true (polled between arrays and every POLL_S), or an interrupt, stops every
-    encoder within one piece and raises SaveCancelled (or the interrupt)."""
+    encoder within one piece and raises SaveCancelled (or the interrupt). ``progress(fraction)``
+    hears, every POLL_S, the share of the chunks' bytes encoded, and 1.0 at the end."""
     todo = sorted((i for i, c in enumerate(chains) if c), key=lambda i: -views[i].nbytes)
     out: list = [v.reshape(-1).view(np.uint8) for v in views]
     if not todo:
+        if progress is not None:
+            progress(1.0)
         return out
     stop = threading.Event()
     threads = min(F.ENCODE_THREADS, _threads(len(todo) + sum(v.nbytes for v in views) // F.CHUNK))
     with ThreadPoolExecutor(threads) as pool:
         try:
-            pending = {}
+            pending, jobs = {}, {}           # jobs: each chunk's future -> its bytes
             for i in todo:
                 if cancel is not None and cancel():
                     raise SaveCancelled("save cancelled")
                 data = F.prefilter(views[i], chains[i])
-                pending[i] = [pool.submit(F.compress, c, stop.is_set) for c in F.chunks(data)] \
-                    if "lzma" in chains[i] else data
-            jobs = [f for p in pending.values() if isinstance(p, list) for f in p]
-            while wait(jobs, timeout=POLL_S).not_done:
+                if "lzma" not in chains[i]:
+                    pending[i] = data
+                    continue
+                pending[i] = []
+                for c in F.chunks(data):
+                    pending[i].append(pool.submit(F.compress, c, stop.is_set))
+                    jobs[pending[i][-1]] = len(c)
+            total = max(sum(jobs.values()), 1)
+            while True:
+                done, not_done = wait(jobs, timeout=POLL_S)
+                if progress is not None:
+                    progress(min(sum(jobs[f] for f in done) / total, 0.999))
+                if not not_done:
+                    break
                 if cancel is not None and cancel():
                     raise SaveCancelled("save cancelled")
             for i in todo:
@@ -141,10 +155,13 @@ def _encode_all(views: list[np.ndarray], chains: list[tuple[str, ...]], cancel) 
             stop.set()                       # running encoders give up within one piece
             pool.shutdown(wait=True, cancel_futures=True)
             raise
+    if progress is not None:
+        progress(1.0)
     return out
 
 
-def _prepare(path: str, header, arrays, filters, cancel) -> tuple[bytes, list[np.ndarray]]:
+def _prepare(path: str, header, arrays, filters, cancel,
+             progress) -> tuple[bytes, list[np.ndarray]]:
     """Validate the inputs, encode the filtered arrays; return the header bytes (preamble ..
     padding) and the stored bytes of each array."""
     if not isinstance(header, dict):
@@ -180,7 +197,7 @@ def _prepare(path: str, header, arrays, filters, cancel) -> tuple[bytes, list[np
     unknown = sorted(set(filters) - set(arrays), key=str)
     if unknown:
         raise TreeCacheError(f"{path}: filters name arrays that are not saved: {unknown}")
-    views = _encode_all(views, chains, cancel)
+    views = _encode_all(views, chains, cancel, progress)
     offset = 0
     for entry, view, chain in zip(table, views, chains):
         entry.update(offset=offset, filters=list(chain), stored=view.size)
@@ -210,19 +227,21 @@ def _write_payload(f: BinaryIO, sha, views: list[np.ndarray]) -> None:
 
 
 def save_tree(path: str | os.PathLike, header: dict, arrays: dict[str, np.ndarray],
-              filters: dict[str, tuple[str, ...]] | None = None, cancel=None) -> None:
+              filters: dict[str, tuple[str, ...]] | None = None, cancel=None,
+              progress=None) -> None:
     """Write ``header`` (JSON-serializable dict) and ``arrays`` to the ``.rit`` file ``path``.
 
     ``filters`` maps array names to filter chains (filters.py); an array whose encoding is not
     smaller than its bytes, or that is not named, is stored raw. Everything is validated and
     encoded before anything is written; ``cancel()`` turning true while the arrays are encoded
-    (or Ctrl-C) stops within a few seconds (SaveCancelled), leaving ``path`` untouched. The file
+    (or Ctrl-C) stops within a few seconds (SaveCancelled), leaving ``path`` untouched;
+    ``progress(fraction)`` follows the encoding (bytes of chunks done). The file
     is written beside ``path`` under a temporary name, fsynced and moved into place with
     os.replace: on any error or interrupt the temporary file is removed and an existing file at
     ``path`` is untouched.
     """
     path = os.fspath(path)
-    head, views = _prepare(path, header, arrays, filters, cancel)
+    head, views = _prepare(path, header, arrays, filters, cancel, progress)
     tmp = f"{path}.{os.urandom(6).hex()}.tmp"
     f = open(tmp, "xb")
     try:

@@ -489,12 +489,14 @@ def first_use_order(leaf_corner: np.ndarray, ex_ids: np.ndarray, n: int) -> np.n
     return ids[np.argsort(first, kind="stable")]
 
 
-def save(tree: RITree, path, header_extra: dict | None = None, cancel=None) -> None:
+def save(tree: RITree, path, header_extra: dict | None = None, cancel=None,
+         progress=None) -> None:
     """Write ``tree`` to a .rit cache file (atomically, compressed; see ritree.cache), its header
-    extended by ``header_extra``; ``cancel()`` turning true gives up (cache.SaveCancelled)."""
+    extended by ``header_extra``; ``cancel()`` turning true gives up (cache.SaveCancelled);
+    ``progress(fraction)`` follows the compression."""
     arrays = tree.arrays()
     save_tree(path, {**tree.header(), **(header_extra or {})}, arrays, tree.file_filters(arrays),
-              cancel)
+              cancel, progress)
 
 
 def load(path, scene=None, mmap: bool = True) -> RITree:

@@ -211,6 +211,20 @@ def test_cancelled_save_stops_its_encoders_and_keeps_the_old_file(tree, monkeypa
     assert path.read_bytes() == before and os.listdir(path.parent) == [path.name]
 
 
+def test_save_progress_follows_the_chunks(tmp_path, monkeypatch):
+    """progress hears fractions that never go back, below 1 while chunks remain, then 1.0."""
+    monkeypatch.setattr(filters, "CHUNK", 1 << 20)
+    monkeypatch.setattr(filters, "MIN_STREAM", 1 << 20)
+    monkeypatch.setattr(cache, "POLL_S", 0.001)
+    heard = []
+    a = (np.arange(1 << 21, dtype=np.int64) * 2654435761) % 1000003   # 16 MiB: 16 chunks
+    cache.save_tree(tmp_path / "p.rit", {}, {"a": a}, {"a": ("shuffle", "lzma")},
+                    progress=heard.append)
+    assert heard[-1] == 1.0 and all(0 <= f < 1 for f in heard[:-1])
+    assert heard == sorted(heard) and len(set(heard)) >= 3
+    assert np.array_equal(cache.load_tree(tmp_path / "p.rit")[1]["a"], a)
+
+
 def test_compress_stops_between_pieces():
     data = bytes(3 * filters.PIECE)
     calls = []
