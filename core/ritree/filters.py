@@ -93,12 +93,12 @@ def chunks(data) -> list:
     return [view[i:i + CHUNK] for i in range(0, len(view), CHUNK)] or [view]
 
 
-def encode(arr: np.ndarray, chain, map_fn=map) -> bytes:
-    """The stored bytes of C-order little-endian ``arr`` under ``chain``; ``map_fn`` maps
-    ``compress`` over the chunks (a thread pool's map runs them in parallel)."""
+def encode(arr: np.ndarray, chain) -> bytes:
+    """The stored bytes of C-order little-endian ``arr`` under ``chain``, on this thread (the
+    cache's writer runs ``prefilter`` and each chunk's ``compress`` on a pool instead)."""
     data = prefilter(arr, chain)
     if "lzma" in chain:
-        data = b"".join(map_fn(compress, chunks(data)))
+        data = b"".join(compress(c) for c in chunks(data))
     return data
 
 
