@@ -63,7 +63,7 @@ def _columns(shape: tuple[int, ...]) -> tuple[int, int]:
     if len(shape) == 0:
         return 1, 1
     rows = shape[0]
-    return rows, (int(np.prod(shape[1:])) if rows else 0)
+    return rows, (math.prod(shape[1:]) if rows else 0)
 
 
 def _unsigned(dtype: np.dtype) -> np.dtype:
