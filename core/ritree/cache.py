@@ -77,14 +77,10 @@ class _Entry:
     dtype: np.dtype
     shape: tuple[int, ...]
     offset: int          # relative to the payload start
-    nbytes: int
-    crc32: int
-    filters: tuple[str, ...] = ()
-    stored: int = -1     # bytes in the payload (-1: nbytes)
-
-    def __post_init__(self):
-        if self.stored < 0:
-            self.stored = self.nbytes
+    nbytes: int          # of the array
+    crc32: int           # of the array's bytes
+    filters: tuple[str, ...]
+    stored: int          # bytes in the payload (nbytes without filters)
 
 
 @dataclass

@@ -26,7 +26,8 @@ LZMA_PRESET = 6          # xz's default match finder and effort; its dictionary 
 DICT_MAX = 64 << 20      # bytes: the longest repeats of a full tree's codes (the viewpoints of
                          # a symmetric object's faces) lie tens of MiB apart: on glass_sphere's
                          # 5/6 full tree a 32-128 MiB dictionary stores the hit points in 0.56
-                         # bytes a sample, xz's default 8 MiB in 1.33 (1 MiB: 1.8x larger still)
+                         # bytes a sample, xz's default 8 MiB in 1.33 (and preset 1's 1 MiB
+                         # made the whole 4/5 full tree 1.8x larger than the default's)
 CHUNK = 256 << 20        # bytes of filtered data per xz stream (one thread each): long enough
                          # for the dictionary, short enough to spread a big array over cores
 MIN_STREAM = 1 << 20     # bytes every stream but the last must decode to (the format's rule:

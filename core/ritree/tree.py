@@ -388,27 +388,23 @@ class RITree:
         first-use order (``first_use_order``)."""
         packed = self.samples if isinstance(self.samples, PackedSamples) else \
             self.samples.packed(self.box_lo, self.box_hi)
-        leaf_corner = self.dir_forest.corner[self.dir_forest.child < 0]
-        perm = first_use_order(leaf_corner, self.ex_ids, len(packed))
+        forests = {**self.vp_forest.arrays("vp"), **self.dir_forest.arrays("dir")}
+        perm = first_use_order(forests["dir.leaf_corner"], self.ex_ids, len(packed))
         new_id = np.empty(len(perm), np.int64)
         new_id[perm] = np.arange(len(perm))
 
         def renumber(ids):                   # -1 (a corner not sampled) stays -1
             return np.where(ids >= 0, new_id[np.maximum(ids, 0)], ids)
 
+        forests["dir.leaf_corner"] = renumber(forests["dir.leaf_corner"])
         out = {"box_lo": self.box_lo, "box_hi": self.box_hi, "class_of": self.class_of,
                "vp_pos": self.vp_pos, "vp_face": self.vp_face, "dir_rect": self.dir_rect,
                "ex_node": _ids(self.ex_node), "ex_kind": self.ex_kind.astype(np.int8),
                "ex_ids": _ids(renumber(self.ex_ids)), "ex_pos": _ex_pos_codes(self.ex_pos),
                "ex_corner": self.ex_corner.astype(np.int8), "dir_err": self.dir_err,
                "dir_flags": self.dir_flags, "vp_err": self.vp_err, "vp_flags": self.vp_flags}
-        for name, forest in (("vp", self.vp_forest), ("dir", self.dir_forest)):
-            a = forest.arrays(name)
-            if name == "dir":
-                a["dir.leaf_corner"] = renumber(leaf_corner)
-            for k in ("root", "child", "leaf_corner"):
-                a[f"{name}.{k}"] = _ids(a[f"{name}.{k}"])
-            out.update(a)
+        out.update({k: _ids(v) if k.rsplit(".", 1)[1] in ("root", "child", "leaf_corner") else v
+                    for k, v in forests.items()})
         out.update({f"s.{k}": v for k, v in packed.take(perm).stored().items()})
         return out
 

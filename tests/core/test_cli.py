@@ -338,14 +338,7 @@ def test_image_sizes_and_workers_checked_first(files, tmp_path, capsys, monkeypa
     assert list(tmp_path.iterdir()) == []
 
 
-def default_sigint():
-    """In the child before exec: Ctrl-C's default action, which a shell that started this suite
-    in the background (``make test &``) set to ignore, and Python then never turns into
-    KeyboardInterrupt."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
-def test_ctrl_c_during_bake(files, tmp_path):
+def test_ctrl_c_during_bake(files, tmp_path, default_sigint):
     """SIGINT to the whole process group (a terminal's Ctrl-C) mid-bake, with worker processes:
     one line, exit 130, no traceback from the parent or the workers; the old cache is intact."""
     old = tmp_path / "tree.rit"

@@ -171,13 +171,7 @@ def test_cancel_stops_the_shards(cluster, st):
     assert _idle(cluster, 5.0)
 
 
-def default_sigint():
-    """In the child before exec: Ctrl-C's default action (a shell that ran this suite in the
-    background set it to ignore, and Python then never raises KeyboardInterrupt)."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
-def test_ctrl_c_keeps_the_previous_cache(tmp_path, local_full):
+def test_ctrl_c_keeps_the_previous_cache(tmp_path, local_full, default_sigint):
     out = tmp_path / "tree.rit"
     ritree.save(local_full, out)
     before = out.read_bytes()
