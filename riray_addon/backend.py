@@ -34,9 +34,9 @@ BACKEND = "ritree"
 CALIBRATION_RAYS = 256          # rays traced to measure this object's cost per ray (estimate)
 # Estimate model: samples per baked direction tree and bytes per sample (compressed cache), from
 # the sample scenes' close-view bakes at the paper's depths (docs/benchmarks.md; vase_glass
-# close, format 2: 15.9 bytes a sample).
+# close, tree layout 5: 10.8 bytes a sample).
 EST_SAMPLES_PER_TREE = 120
-EST_BYTES_PER_SAMPLE = 16
+EST_BYTES_PER_SAMPLE = 11
 
 
 class BakeCancelled(Exception):

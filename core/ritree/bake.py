@@ -32,6 +32,7 @@ import numpy as np
 
 from ..parallel import map_chunks
 from .cache import fingerprint
+from .derive import derive
 from .dircube import CUBE, DOMAIN, N_SLOTS, U_AXIS, UV_AXES, V_AXIS, cube_to_dir
 from .interp import FAIL, UNIT_CORNERS, angle_between, cell_weights
 from .quadtree import CORNERS, Forest
@@ -313,6 +314,7 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
     # what the caller renders with is exactly what a cache file stores
     if not isinstance(tree.samples, PackedSamples):
         tree.samples = tree.samples.packed(tree.box_lo, tree.box_hi)
+    tree.samples = derive(tree.samples, st.tracer, tree.diag)
     tree.meta.update({"fingerprint": fingerprint(st.scene.object, st.scene.render.max_events),
                       "region": (region or Region()).describe(), "refine_passes": passes,
                       "viewpoint_mirror_rays": MEASURE_MIRROR_RAYS,

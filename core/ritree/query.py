@@ -295,9 +295,10 @@ class TreeQuery:
         self.tree, self.st = tree, st
         self.opt = (options or QueryOptions()).validate()
         self.material = st.scene.object.material
-        # load-time work, done once (and before any fork, so worker processes share it):
-        # decoded samples and their perspective-weighted copy, dense leaf tables,
-        # answerable-leaf flags
+        # load-time work, done once (and before any fork, so worker processes share it): a
+        # loaded tree's derived hit points and normals, decoded samples and their
+        # perspective-weighted copy, dense leaf tables, answerable-leaf flags
+        tree.attach_geometry(st.tracer)
         self.table = tree.table
         tree.blend_vals, tree.vp_locator, tree.dir_locator
         tree.leaf_ok, tree.leaf_sampled, tree.cell_rect

@@ -20,6 +20,7 @@ from ..trace.objectfn import one_reflection_hash
 from .cache import TreeCacheError, fingerprint, load_tree, save_tree
 from .codec import (decode_params, decode_points, decode_unit_vectors, encode_params, encode_points,
                     encode_unit_vectors)
+from .derive import fill, kept_rows, valid_codes
 from .quadtree import CORNERS, DenseLocator, Forest
 
 SAMPLE_FIELDS = ("out_o", "out_d", "point", "normal", "patch", "null", "tree", "uv")
@@ -29,8 +30,9 @@ SAMPLE_FIELDS = ("out_o", "out_d", "point", "normal", "patch", "null", "tree", "
 # follows from the rest is not stored (levels, cell indices and inner corners of the forests,
 # the outputs of samples that miss the object), small ranges in small dtypes. 4: each hit
 # sample's normalized first-hit patch parameters (s.uv_q), the seeds of the mirror query's
-# Newton step.
-TREE_LAYOUT = 4
+# Newton step. 5: hit points and normals that follow from a sample's patch and parameters are
+# not stored (s.geom; derive.py).
+TREE_LAYOUT = 5
 # Extra samples' cell-local positions are stored as uint16 multiples of 1 / EX_POS_SCALE where
 # that is exact (the bake's edge search lands on binary fractions: search_steps <= 15), else
 # as float32.
@@ -148,7 +150,8 @@ class Samples:
 class PackedSamples:
     """Samples as packed codes (codec.py; what bake shards return, and a cache file holds in
     the form of ``stored``): decoded on gather, or whole through the out_o / out_d / point /
-    normal properties."""
+    normal properties. ``geom`` (derive.py) says which hits' point, normal and output origin
+    follow from the rest; a loaded file's are ``pending`` until derive.fill computes them."""
 
     out_o_q: np.ndarray     # (S, 3) uint16 point codes in the box [lo, hi]
     out_d_q: np.ndarray     # (S, 2) int16 octahedral codes (zero vector reserved)
@@ -160,16 +163,28 @@ class PackedSamples:
     tree: np.ndarray        # (S,) uint32 ray-tree hash
     lo: np.ndarray
     hi: np.ndarray
+    geom: np.ndarray | None = None  # (S,) uint8 derive.GEOM_* (None: all stored)
+    pending: bool = False   # the derived hits' point and normal codes are not computed yet
 
     FIELDS = ("out_o_q", "out_d_q", "point_q", "normal_q", "uv_q", "patch", "null", "tree")
     CODES = FIELDS[:5]          # the output codes (stored for hits only)
-    STORED = ("patch", "null_bits", "tree_table", "tree_code") + CODES
+    STORED = ("patch", "null_bits", "tree_table", "tree_code", "geom") + CODES
+
+    def __post_init__(self):
+        if self.geom is None:
+            self.geom = np.zeros(len(self.patch), np.uint8)
 
     def __len__(self) -> int:
         return len(self.patch)
 
+    def _derived(self) -> None:
+        if self.pending:
+            raise RuntimeError("this tree's hit points and normals follow from its object's "
+                               "surfaces: call attach_geometry(tracer) first (TreeQuery does)")
+
     @property
     def out_o(self) -> np.ndarray:
+        self._derived()
         return decode_points(self.out_o_q, self.lo, self.hi)
 
     @property
@@ -178,10 +193,12 @@ class PackedSamples:
 
     @property
     def point(self) -> np.ndarray:
+        self._derived()
         return decode_points(self.point_q, self.lo, self.hi)
 
     @property
     def normal(self) -> np.ndarray:
+        self._derived()
         return decode_unit_vectors(self.normal_q)
 
     @property
@@ -190,44 +207,57 @@ class PackedSamples:
 
     def stored(self) -> dict[str, np.ndarray]:
         """The cache file's sample arrays: the codes of the samples that hit the object only
-        (a miss's output is its input ray, which the tree never interpolates), null flags as
-        bits, ray-tree hashes as indices into their distinct values."""
+        (a miss's output is its input ray, which the tree never interpolates), and of those
+        the point, normal and output origin codes only where they do not follow from the rest
+        (``geom``, hits only), null flags as bits, ray-tree hashes as indices into their
+        distinct values."""
         hit = np.flatnonzero(self.patch >= 0)             # row take: faster than a mask
+        kept = {k: hit[m] for k, m in kept_rows(self.geom[hit]).items()}
         table = np.unique(self.tree).astype(np.uint32)
         code = np.searchsorted(table, self.tree)
         return {"patch": self.patch, "null_bits": np.packbits(self.null, bitorder="little"),
                 "tree_table": table,
                 "tree_code": code.astype(np.uint8 if len(table) <= 1 << 8 else
                                          np.uint16 if len(table) <= 1 << 16 else np.uint32),
-                **{k: getattr(self, k).take(hit, axis=0) for k in self.CODES}}
+                "geom": self.geom.take(hit),
+                **{k: getattr(self, k).take(kept.get(k, hit), axis=0) for k in self.CODES}}
 
     @classmethod
     def from_stored(cls, a: dict, lo, hi) -> "PackedSamples":
-        """PackedSamples.stored's arrays back (misses' codes are zeros). ValueError where
-        their lengths disagree."""
+        """PackedSamples.stored's arrays back (misses' codes are zeros, and the codes that
+        follow from the rest until derive.fill: ``pending``). ValueError where their lengths
+        or the geometry codes disagree."""
         patch = np.asarray(a["patch"])
         n, hit = len(patch), np.flatnonzero(patch >= 0)
         table, code = np.asarray(a["tree_table"]), np.asarray(a["tree_code"])
+        geom_hit = np.asarray(a["geom"])
+        if len(geom_hit) != len(hit) or geom_hit.dtype != np.uint8 or not valid_codes(geom_hit):
+            raise ValueError("sample geometry codes disagree with the hits")
+        kept = {k: hit[m] for k, m in kept_rows(geom_hit).items()}
         if len(code) != n or (n and int(code.max()) >= len(table)) \
                 or len(a["null_bits"]) != (n + 7) // 8 \
-                or any(len(a[k]) != len(hit) for k in cls.CODES):
+                or any(len(a[k]) != len(kept.get(k, hit)) for k in cls.CODES):
             raise ValueError("sample arrays disagree in length")
         codes = {}
         for k in cls.CODES:
             q = np.asarray(a[k])
             codes[k] = np.zeros((n,) + q.shape[1:], q.dtype)
-            codes[k][hit] = q
+            codes[k][kept.get(k, hit)] = q
         null = np.unpackbits(np.asarray(a["null_bits"]), count=n, bitorder="little").view(bool)
+        geom = np.zeros(n, np.uint8)
+        geom[hit] = geom_hit
         return cls(**codes, patch=patch, null=null,
-                   tree=table[code] if n else np.zeros(0, np.uint32), lo=lo, hi=hi)
+                   tree=table[code] if n else np.zeros(0, np.uint32), lo=lo, hi=hi, geom=geom,
+                   pending=bool(np.any(geom_hit)))
 
     def take(self, ids) -> "PackedSamples":
         """The samples ``ids`` (in that order)."""
         return PackedSamples(**{k: getattr(self, k)[ids] for k in self.FIELDS},
-                             lo=self.lo, hi=self.hi)
+                             lo=self.lo, hi=self.hi, geom=self.geom[ids], pending=self.pending)
 
     def gather(self, ids) -> np.ndarray:
         """(..., 12) float64 values of sample ids; each distinct sample is decoded once."""
+        self._derived()
         ids = np.asarray(ids)
         u, inv = np.unique(ids, return_inverse=True)
         vals = np.concatenate([decode_points(self.out_o_q[u], self.lo, self.hi),
@@ -306,6 +336,16 @@ class RITree:
     def table(self) -> SampleTable:
         """The samples decoded once (the first use decodes a packed file's samples)."""
         return SampleTable.of(self.samples, self.class_of)
+
+    def attach_geometry(self, tracer) -> None:
+        """Compute a loaded tree's derived hit points and normals from ``tracer`` (the
+        PatchTracer of the object it was baked for; derive.py). A no-op for a baked tree."""
+        if getattr(self.samples, "pending", False):
+            try:
+                self.samples = fill(self.samples, tracer)
+            except ValueError as e:
+                raise TreeCacheError(f"RI-Tree does not fit this object ({e}); re-bake the "
+                                     "tree") from None
 
     @cached_property
     def blend_vals(self) -> np.ndarray:

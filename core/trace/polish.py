@@ -142,25 +142,52 @@ def _newton(tracer, o, d, k, s, t):
 
 def _record(tracer, o, d, rows, k, s, t, u, v, res):
     """Write the roots (s, t) on pieces ``k`` of rays ``rows`` into ``res``."""
+    P, nrm = _surface(tracer, k, s, t, u, v)
+    res.hit[rows] = True
+    res.t[rows] = np.einsum("ij,ij->i", P - o[rows], d[rows])
+    res.point[rows] = P
+    res.normal[rows] = nrm
+    res.patch[rows] = tracer.piece_patch[k]
+    res.u[rows], res.v[rows] = u, v
+
+
+def _surface(tracer, k, s, t, u, v):
+    """(points (N, 3), unit normals (N, 3) as the surface is oriented) at local (s, t) of
+    pieces ``k`` (clipped to the piece), which are NURBS parameters (u, v) of their patches;
+    at poles and collapsed edges the limit normal."""
+    P = np.empty((len(k), 3))
+    nrm = np.empty((len(k), 3))
     grp = tracer.piece_group[k]
     for g in np.unique(grp):
         m = np.flatnonzero(grp == g)
-        r = rows[m]
-        nets = tracer.piece_nets[g]
-        P, Ps, Pt = bz.bezier_eval(nets, np.clip(s[m], 0.0, 1.0), np.clip(t[m], 0.0, 1.0),
-                                   derivatives=1, index=tracer.piece_local[k[m]])
-        nrm = np.cross(Ps, Pt)
-        ln = np.linalg.norm(nrm, axis=1)
+        P[m], Ps, Pt = bz.bezier_eval(tracer.piece_nets[g], np.clip(s[m], 0.0, 1.0),
+                                      np.clip(t[m], 0.0, 1.0), derivatives=1,
+                                      index=tracer.piece_local[k[m]])
+        n = np.cross(Ps, Pt)
+        ln = np.linalg.norm(n, axis=1)
         deg = ln <= DEGENERATE_REL * (np.linalg.norm(Ps, axis=1)
                                       + np.linalg.norm(Pt, axis=1)) ** 2 + 1e-300
-        nrm /= np.where(deg, 1.0, ln)[:, None]
+        nrm[m] = n / np.where(deg, 1.0, ln)[:, None]
         pid = tracer.piece_patch[k[m]]
         for p in np.unique(pid[deg]):            # poles, collapsed edges: the limit normal
-            i = np.flatnonzero(deg & (pid == p))
-            nrm[i] = nurbs_normals(tracer.object.patches[int(p)].surface, u[m][i], v[m][i])
-        res.hit[r] = True
-        res.t[r] = np.einsum("ij,ij->i", P - o[r], d[r])
-        res.point[r] = P
-        res.normal[r] = nrm
-        res.patch[r] = pid
-        res.u[r], res.v[r] = u[m], v[m]
+            i = m[np.flatnonzero(deg & (pid == p))]
+            nrm[i] = nurbs_normals(tracer.object.patches[int(p)].surface, u[i], v[i])
+    return P, nrm
+
+
+def surface_at(tracer: PatchTracer, patch, uvn):
+    """The surface of NURBS patches ``patch`` (N,) at normalized parameters ``uvn`` (N, 2) in
+    [0, 1]^2: (points (N, 3), unit normals (N, 3) as the surface is oriented, ok (N,)); ``ok``
+    is False (and the values zero) on mesh patches."""
+    patch = np.asarray(patch, np.int64)
+    uvn = np.asarray(uvn, np.float64)
+    P, nrm = np.zeros((len(patch), 3)), np.zeros((len(patch), 3))
+    ok = (patch >= 0) & (tracer.piece_base[np.maximum(patch, 0)] >= 0)
+    live = np.flatnonzero(ok)
+    if len(live):
+        dom = tracer.uv_domain[patch[live]]
+        u = dom[:, 0] + uvn[live, 0] * (dom[:, 1] - dom[:, 0])
+        v = dom[:, 2] + uvn[live, 1] * (dom[:, 3] - dom[:, 2])
+        k, s, t = _piece_of(tracer, patch[live], u, v)
+        P[live], nrm[live] = _surface(tracer, k, s, t, u, v)
+    return P, nrm, ok

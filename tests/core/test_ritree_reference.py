@@ -145,6 +145,7 @@ class Case:
         path = tmp / f"{name}.rit"
         ritree.save(bake(self.st, params, region, workers=1), path)
         self.tree = ritree.load(path, scene)
+        self.tree.attach_geometry(self.st.tracer)      # the reference reads the samples too
         rays = [camera_rays(cam, SIZE, SIZE)]
         rays += [camera_rays(scene.camera(c), SIZE // 2, SIZE // 2) for c in spec["extra_cameras"]]
         o = np.concatenate([r[0] for r in rays])

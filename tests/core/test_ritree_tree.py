@@ -17,6 +17,7 @@ once per module with workers=1.
 """
 
 import copy
+from dataclasses import replace
 import re
 
 import numpy as np
@@ -26,6 +27,10 @@ from riray.geometry.primitives import bilinear, box_faces, sphere
 from riray.render.exact import SceneTracer
 from riray.ritree import bake as bake_mod
 from riray.ritree import cache
+from riray.ritree import derive as derive_mod
+from riray.ritree.codec import PARAM_LEVELS
+from riray.ritree.derive import (GEOM_FLIPPED, GEOM_NORMAL, GEOM_OUT_AT_HIT, GEOM_STORED,
+                                 GEOM_SURFACE, derive)
 from riray.ritree.bake import BakeCancelled, bake
 from riray.ritree.dircube import CUBE, DOMAIN, N_SLOTS, SLOT, UV_AXES, cube_to_dir, dir_to_cube
 from riray.ritree.interp import angle_between
@@ -37,6 +42,7 @@ from riray.ritree.query import (EXTRAPOLATED_S, FULL, MISS, NULL_S, OUTSIDE, RED
 from riray.ritree.region import Region
 
 from riray.ritree import tree as ritree
+from riray.trace.objectfn import one_reflection_hash
 from riray.ritree.tree import (EX_POS_SCALE, BakeParams, PackedSamples, RITree, Samples,
                                first_use_order)
 from riray.scene.model import ObjectMaterial, Patch, RenderSettings, Scene, SpecularObject
@@ -60,6 +66,11 @@ P = lambda x, y, z: np.array([x, y, z], float)  # noqa: E731
 # <= extent / 131070 per axis: 2.6e-5 for these trees' boxes of extent <= 3.4), unit vectors
 # octahedral int16 pairs (<= OCT_MAX_ERROR = 6.5e-5 rad); a convex blend keeps those bounds.
 F32 = 3e-5
+# Hit points on NURBS patches (and a once-reflected mirror ray's output origin) follow from
+# their 16-bit patch parameters (tree layout 5, ritree/derive.py): the surface there moves by
+# up to half a parameter step times the patch's extent (1.5e-5 per axis on the 2 x 2 mirror)
+# before the point's own code rounding.
+F32_HIT = F32 + 2.0 / PARAM_LEVELS / 2
 ANG32 = 1.5e-4        # rad
 
 
@@ -232,7 +243,7 @@ def stored_matches_exact(tree, sid, ex, edge):
     differ = hs != ex.hit
     assert np.all(edge[differ]), np.flatnonzero(differ)[:5]
     both = hs & ex.hit & ~ex.null
-    assert np.abs(s.point[sid][both] - ex.point[both]).max() < F32
+    assert np.abs(s.point[sid][both] - ex.point[both]).max() < F32_HIT
     assert angle_between(s.out_d[sid][both].astype(float), ex.out_dir[both]).max() < ANG32
     return both
 
@@ -295,8 +306,8 @@ def test_mirror_interpolation_is_exact_where_f_is_affine(mirror):
     m = interpolated(ans) & z_dominant(d)
     assert m.sum() > 1000
     assert np.all(res.hit[m] & ex.hit[m])
-    assert np.abs(res.point[m] - ex.point[m]).max() < F32
-    assert np.abs(res.out_origin[m] - ex.out_origin[m]).max() < F32
+    assert np.abs(res.point[m] - ex.point[m]).max() < F32_HIT
+    assert np.abs(res.out_origin[m] - ex.out_origin[m]).max() < F32_HIT      # a once-reflected ray leaves from its hit
     assert np.abs(res.normal[m] - ex.normal[m]).max() < F32
     assert np.abs(res.t_first[m] - ex.t_first[m]).max() < 2 * F32
     # directions: perspective-correct blending makes them affine-exact too
@@ -344,7 +355,7 @@ def test_mirror_reproduces_every_sample_ray(mirror):
     s = tree.samples
     # the stored samples are f of their rays (bake stores the right sample at each corner);
     # rays through the mirror's rim |x| = 1 or |y| = 1 may go either way
-    rim = (np.abs(np.abs(s.point[sid][:, :2]) - 1) < F32).any(1) | \
+    rim = (np.abs(np.abs(s.point[sid][:, :2]) - 1) < F32_HIT).any(1) | \
         (np.abs(np.abs(ex.point[:, :2]) - 1) < 1e-6).any(1)
     hit = stored_matches_exact(tree, sid, ex, rim)
     m = interpolated(ans)
@@ -353,11 +364,11 @@ def test_mirror_reproduces_every_sample_ray(mirror):
     corner = lands_on_corner(tree, t4, o, d)
     c = m & corner & hit & ~rim
     assert c.sum() > 1000
-    assert np.abs(res.point[c] - ex.point[c]).max() < F32
-    assert np.abs(res.out_origin[c] - ex.out_origin[c]).max() < F32
+    assert np.abs(res.point[c] - ex.point[c]).max() < F32_HIT
+    assert np.abs(res.out_origin[c] - ex.out_origin[c]).max() < F32_HIT
     assert angle_between(res.out_dir[c], ex.out_dir[c]).max() < ANG32
     z = m & z_dominant(d) & hit
-    assert np.abs(res.point[z] - ex.point[z]).max() < F32
+    assert np.abs(res.point[z] - ex.point[z]).max() < F32_HIT
     # an answered miss at a sample ray that the query uses is a real miss (elsewhere, edge-on
     # views of the plane from side faces can hide between the 16 samples: paper Fig. 9(b))
     assert not ex.hit[(ans == MISS) & corner & ~rim].any()
@@ -393,7 +404,7 @@ def test_slab_exit_parallel_to_entry(slab):
     par = np.degrees(angle_between(res.out_dir[m], d[m]))
     assert par.max() < BakeParams().tolerance_deg                # measured max 0.29 deg
     assert np.abs(res.out_origin[m] - ex.out_origin[m]).max() < 0.002 * tree.diag
-    assert np.abs(res.point[m] - ex.point[m]).max() < F32        # entry point: affine
+    assert np.abs(res.point[m] - ex.point[m]).max() < F32_HIT        # entry point: affine
     assert np.array_equal(res.hit, ex.hit)
 
 
@@ -486,7 +497,7 @@ def test_mirror_boundary_queries(mirror):
     assert err.max() < 1.0
     assert np.abs(res.point[both] - ex.point[both]).max() < 0.2       # measured 0.075
     z = both & z_dominant(d)
-    assert np.abs(res.point[z] - ex.point[z]).max() < F32
+    assert np.abs(res.point[z] - ex.point[z]).max() < F32_HIT
     tr = (ans == TRACED) | (ans == OUTSIDE)
     assert np.array_equal(res.hit[tr], ex.hit[tr])
     assert np.allclose(res.out_dir[tr], ex.out_dir[tr])
@@ -1010,7 +1021,7 @@ def test_bake_bookkeeping_and_shared_samples(mirror):
     # every stored sample is f of its ray
     ex = st.object_function(vp, d)
     assert np.array_equal(tree.samples.patch[sid], ex.patch.astype(np.int32))
-    assert np.abs(tree.samples.point[sid][ex.hit] - ex.point[ex.hit]).max() < F32
+    assert np.abs(tree.samples.point[sid][ex.hit] - ex.point[ex.hit]).max() < F32_HIT
 
 
 def test_every_sample_is_referenced(mirror):
@@ -1195,13 +1206,16 @@ def test_first_use_order_matches_a_plain_loop():
         assert again.tolist() == list(range(n))            # idempotent
 
 
-def test_file_is_the_same_tree_in_first_use_order_and_compressed(tmp_path, sphere_trees):
+def test_file_is_the_same_tree_in_first_use_order_and_compressed(tmp_path, sphere_st,
+                                                                 sphere_trees):
     """The file renumbers samples by first use: every leaf corner and extra sample of the
-    loaded tree holds the sample it held in the baked tree, and the file is much smaller than
-    the raw arrays."""
+    loaded tree holds the sample it held in the baked tree (its hit points and normals
+    derived from the sphere's surface again), and the file is much smaller than the raw
+    arrays."""
     tree = sphere_trees[4, 4]
     path = tmp_path / "a.rit"
     back = save_load(tree, path, mmap=True)
+    back.attach_geometry(sphere_st.tracer)
     leaf = tree.dir_forest.child < 0
     old_ids, new_ids = tree.dir_forest.corner[leaf], back.dir_forest.corner[leaf]
     assert not np.array_equal(old_ids, new_ids)                      # the bake's order is not
@@ -1211,6 +1225,7 @@ def test_file_is_the_same_tree_in_first_use_order_and_compressed(tmp_path, spher
         tree.samples.packed(tree.box_lo, tree.box_hi)
     for new, old in ((new_ids, old_ids), (back.ex_ids, tree.ex_ids)):
         hit = packed.patch[old] >= 0              # the file keeps no output codes of misses
+        assert np.array_equal(back.samples.geom[new], packed.geom[old])
         for k in PackedSamples.FIELDS:
             want = getattr(packed, k)[old]
             assert np.array_equal(getattr(back.samples, k)[new][hit] if k in
@@ -1345,3 +1360,88 @@ def test_blend_values_carry_each_samples_perspective_weight(sphere_trees):
     assert np.allclose(bv[ids, 3:6], vals[ids, 3:6] * w[:, None], rtol=1e-6, atol=1e-7)
     other = np.r_[0:3, 6:12]
     assert np.array_equal(bv[:, other], vals[:, other])
+
+
+# --------------------------------------------------------------------------- derived geometry
+def test_file_keeps_only_the_hit_data_that_does_not_follow(tmp_path, mirror):
+    """Tree layout 5 (ritree/derive.py): a hit's point and normal follow from its patch and
+    parameters, seen from either side of the mirror (the normal faces the sample's ray: the
+    surface's or its opposite), and a once-reflected mirror ray's output origin is its hit
+    point, so the file stores none of them. A loaded tree gets them back from its object's
+    surfaces (a mesh where it had a NURBS patch is refused)."""
+    st, tree = mirror
+    s = tree.samples
+    hit = s.patch >= 0
+    low = s.geom & GEOM_NORMAL
+    assert np.all(low[hit] != GEOM_STORED) and not np.any(s.geom[~hit])
+    assert np.sum(low == GEOM_SURFACE) > 100 and np.sum(low == GEOM_FLIPPED) > 100
+    # independent of the codes: the side each sample's ray came from, by its stored normal's
+    # sign, against the plane's surface normal (+z: bilinear's u x v)
+    assert np.array_equal(low[hit] == GEOM_FLIPPED, s.normal[hit][:, 2] < 0)
+    once = hit & (s.tree == one_reflection_hash(s.patch))
+    assert once.sum() > 100 and np.array_equal(s.geom & GEOM_OUT_AT_HIT > 0, once)
+    path = tmp_path / "m.rit"
+    ritree.save(tree, path)
+    _, arrays = cache.load_tree(path)
+    assert len(arrays["s.point_q"]) == len(arrays["s.normal_q"]) == 0
+    assert len(arrays["s.out_o_q"]) == hit.sum() - once.sum()
+    assert len(arrays["s.out_d_q"]) == hit.sum()
+    back = ritree.load(path)
+    with pytest.raises(RuntimeError, match="attach_geometry"):
+        back.table
+    tri = Patch("t", 0, vertices=np.eye(3), triangles=np.array([[0, 1, 2]]))
+    with pytest.raises(cache.TreeCacheError, match="re-bake"):
+        back.attach_geometry(tracer_of(SpecularObject("tri", [tri], ObjectMaterial(
+            kind="mirror"))).tracer)
+    back.attach_geometry(st.tracer)
+    leaf = tree.dir_forest.child < 0
+    a, b = tree.dir_forest.corner[leaf].ravel(), back.dir_forest.corner[leaf].ravel()
+    h = s.patch[a] >= 0
+    for k in ("point_q", "normal_q", "out_o_q", "out_d_q", "uv_q"):
+        assert np.array_equal(getattr(s, k)[a[h]], getattr(back.samples, k)[b[h]]), k
+
+
+def test_derive_stores_what_the_surface_does_not_give(sphere_st, sphere_trees, monkeypatch):
+    """Where the surface at a hit's quantized parameters is not its traced hit (here:
+    parameters moved on purpose), derive keeps the stored point and normal; glass hits keep
+    their output origins (they leave elsewhere). Block by block, the same."""
+    tree = sphere_trees[3, 3]
+    s = tree.samples
+    hit = np.flatnonzero(s.patch >= 0)
+    assert np.all(s.geom[hit] == GEOM_SURFACE)           # every glass hit derived, none at hit
+    raw = replace(s, geom=None)
+    moved = hit[::7]
+    uv = raw.uv_q.copy()
+    uv[moved] = (uv[moved].astype(np.int64) + 3000) % 65536
+    got = derive(replace(raw, uv_q=uv), sphere_st.tracer, tree.diag)
+    assert np.all(got.geom[moved] == GEOM_STORED)
+    assert np.array_equal(got.point_q[moved], raw.point_q[moved])
+    assert np.array_equal(got.normal_q[moved], raw.normal_q[moved])
+    rest = np.setdiff1d(hit, moved)
+    assert np.all(got.geom[rest] == GEOM_SURFACE)
+    assert np.array_equal(got.point_q[rest], s.point_q[rest])
+    monkeypatch.setattr(derive_mod, "DERIVE_BLOCK", 97)
+    small = derive(replace(raw, uv_q=uv), sphere_st.tracer, tree.diag)
+    filled = derive_mod.fill(replace(small, point_q=np.zeros_like(small.point_q),
+                                     normal_q=np.zeros_like(small.normal_q), pending=True),
+                             sphere_st.tracer)
+    for k in ("geom", "point_q", "normal_q", "out_o_q"):
+        assert np.array_equal(getattr(small, k), getattr(got, k)), k
+    for k in ("point_q", "normal_q"):
+        assert np.array_equal(getattr(filled, k)[rest], getattr(got, k)[rest]), k
+
+
+@pytest.mark.parametrize("bad", [3, 4, 8, 9])
+def test_file_geometry_codes_are_checked(bad):
+    """A file's per-hit geometry codes other than derive's (an unknown bit, the low bits 3,
+    an output origin at a hit whose point is stored) are refused before any use."""
+    packed = Samples(out_o=np.zeros((3, 3), np.float32), out_d=np.tile([0, 0, 1.0], (3, 1)),
+                     point=np.zeros((3, 3), np.float32), normal=np.tile([0, 0, 1.0], (3, 1)),
+                     patch=np.array([0, -1, 0], np.int32), null=np.zeros(3, bool),
+                     tree=np.zeros(3, np.uint32)).packed(np.full(3, -1.0), np.ones(3))
+    a = packed.stored()
+    assert len(a["geom"]) == 2
+    PackedSamples.from_stored(a, packed.lo, packed.hi)
+    a["geom"] = np.array([0, bad], np.uint8)
+    with pytest.raises(ValueError, match="geometry codes"):
+        PackedSamples.from_stored(a, packed.lo, packed.hi)

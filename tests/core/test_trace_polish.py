@@ -11,7 +11,7 @@ from riray.ritree.codec import PARAM_LEVELS, decode_params, encode_params
 from riray.scene.model import ObjectMaterial, Patch, SpecularObject
 from riray.trace.objectfn import trace_object
 from riray.trace.patches import PatchTracer
-from riray.trace.polish import Seeds, polish_hits
+from riray.trace.polish import Seeds, polish_hits, surface_at
 
 R = 1.3
 C = np.array([0.2, -0.1, 0.4])
@@ -168,3 +168,28 @@ def test_parameter_codes_round_trip():
     assert decode_params(encode_params(np.array([[-0.5, 1.5]]))).tolist() == [[0.0, 1.0]]
     with pytest.raises(ValueError, match="non-finite"):
         encode_params(np.array([[np.nan, 0.0]]))
+
+
+def test_surface_at_matches_the_nurbs_evaluator_and_the_sphere():
+    """``surface_at`` (the cache's derived hit points and normals, via Bezier pieces) against
+    the NURBS evaluator and the closed-form sphere, poles and seam included; mesh patches and
+    misses get no surface."""
+    rng = np.random.default_rng(5)
+    surf = sphere(C, R)
+    mesh = Patch("tri", 1, vertices=np.eye(3), triangles=np.array([[0, 1, 2]]))
+    tr = PatchTracer(SpecularObject("s", [Patch("sphere", 0, surface=surf), mesh]))
+    uvn = np.concatenate([rng.random((500, 2)), [[0.3, 0.0], [0.7, 1.0], [0.0, 0.4],
+                                                 [1.0, 0.4]]])
+    p, n, ok = surface_at(tr, np.zeros(len(uvn), np.int64), uvn)
+    assert ok.all()
+    u0, u1, v0, v1 = surf.domain
+    P, Su, Sv = evaluate(surf, u0 + uvn[:, 0] * (u1 - u0), v0 + uvn[:, 1] * (v1 - v0))
+    assert np.abs(p - P).max() < 1e-12 * R
+    assert np.abs(np.linalg.norm(p - C, axis=1) - R).max() < 1e-12 * R
+    # the sphere's own outward normal, oriented as the surface is (Su x Sv), at the poles too
+    outward = (p - C) / R
+    side = np.sign(np.einsum("ij,ij->i", np.cross(Su, Sv)[:-4], outward[:-4]))
+    assert np.all(side == side[0])
+    assert angle(n, side[0] * outward).max() < 1e-9
+    p2, n2, ok2 = surface_at(tr, np.array([1, -1]), np.full((2, 2), 0.5))
+    assert not ok2.any() and not p2.any() and not n2.any()
