@@ -6,12 +6,13 @@ Every sample that hits a NURBS patch keeps its first hit's normalized patch para
 those parameters, so the cache file keeps them only where they do not follow: on mesh patches,
 and where the surface at the quantized parameters is farther than DERIVE_MAX_MOVE_REL or
 DERIVE_MAX_TURN_DEG from the traced hit (a guard: 16-bit parameters move a hit by about 1e-5
-of its patch). A mirror ray reflected once leaves from its hit point: an output origin
-within one code unit of the hit point's is that point. Per sample ``geom`` says what follows: the low two bits GEOM_STORED, GEOM_SURFACE
-(the surface's normal) or GEOM_FLIPPED (its opposite: a sample's normal faces its ray), and
-GEOM_OUT_AT_HIT (the output origin is the hit point). The bake applies ``derive`` in memory, so
-a tree renders the same before its save and after its load; a loaded tree gets them back from
-its object's surfaces (``fill``, which ``TreeQuery`` calls).
+of its patch). A mirror ray reflected once leaves from its hit point: an output origin within
+one code unit of the hit point's is that point. Per sample ``geom`` says what follows: the
+low two bits GEOM_STORED, GEOM_SURFACE (the surface's normal) or GEOM_FLIPPED (its opposite:
+a sample's normal faces its ray), and the bit GEOM_OUT_AT_HIT (the output origin is the hit
+point). The bake applies ``derive`` in memory, so a tree renders the same before its save and
+after its load; a loaded tree gets them back from its object's surfaces (``fill``, which
+``TreeQuery`` calls).
 """
 
 from __future__ import annotations
@@ -28,12 +29,12 @@ GEOM_STORED, GEOM_SURFACE, GEOM_FLIPPED = 0, 1, 2     # bits 0-1: the point and 
 GEOM_NORMAL = 3                                       # (mask of those two bits)
 GEOM_OUT_AT_HIT = 4                                   # the output origin is the hit point
 # The surface at a sample's quantized parameters stands for its traced hit only within these:
-# the point within this fraction of the object's box diagonal (16-bit parameters move a hit
-# by about 1e-5 of its patch's extent), the normal within this angle.
-DERIVE_MAX_MOVE_REL = 1e-3
-DERIVE_MAX_TURN_DEG = 1.0
-
-
+# the point within this fraction of the object's (unpadded) box diagonal, the normal within
+# this angle. 16-bit parameters move a hit by at most half a step times the surface's
+# parametric speed: on the sample scenes' full and camera trees (11 M hits) by at most
+# 3.5e-5 of the diagonal (three point codes) and 0.026 degrees.
+DERIVE_MAX_MOVE_REL = 1e-4
+DERIVE_MAX_TURN_DEG = 0.1
 # Hits per block of surface evaluation (bounds the float64 work arrays to ~0.3 GB).
 DERIVE_BLOCK = 1 << 20
 
@@ -42,7 +43,10 @@ def derive(samples, tracer, diag: float):
     """``samples`` (PackedSamples) with the point and normal codes of every hit that follows
     from its patch and parameters replaced by the surface's there, and the output origin of
     every such hit that left there (codes within one unit) by its point; ``geom`` records
-    which. ``tracer``: the object's PatchTracer; ``diag``: its box diagonal (scene units)."""
+    which. ``tracer``: the object's PatchTracer; ``diag``: its (unpadded) box diagonal (scene
+    units). ``samples`` must hold traced codes (not a loaded file's pending ones)."""
+    if samples.pending:
+        raise ValueError("derive needs traced samples, not a loaded tree's pending ones")
     out = replace(samples, point_q=samples.point_q.copy(), normal_q=samples.normal_q.copy(),
                   out_o_q=samples.out_o_q.copy(), geom=np.zeros(len(samples), np.uint8),
                   pending=False)

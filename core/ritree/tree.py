@@ -168,6 +168,8 @@ class PackedSamples:
 
     FIELDS = ("out_o_q", "out_d_q", "point_q", "normal_q", "uv_q", "patch", "null", "tree")
     CODES = FIELDS[:5]          # the output codes (stored for hits only)
+    CODE_FORMS = {"out_o_q": (np.uint16, 3), "out_d_q": (np.int16, 2), "point_q": (np.uint16, 3),
+                  "normal_q": (np.int16, 2), "uv_q": (np.uint16, 2)}   # dtype, columns
     STORED = ("patch", "null_bits", "tree_table", "tree_code", "geom") + CODES
 
     def __post_init__(self):
@@ -228,10 +230,17 @@ class PackedSamples:
         follow from the rest until derive.fill: ``pending``). ValueError where their lengths
         or the geometry codes disagree."""
         patch = np.asarray(a["patch"])
+        if patch.ndim != 1 or patch.dtype.kind != "i":
+            raise ValueError("sample patches are not a list of integers")
+        for k, (dtype, cols) in cls.CODE_FORMS.items():
+            q = np.asarray(a[k])
+            if q.dtype != dtype or q.ndim != 2 or q.shape[1] != cols:
+                raise ValueError(f"s.{k} is not (n, {cols}) {np.dtype(dtype).name} codes")
         n, hit = len(patch), np.flatnonzero(patch >= 0)
         table, code = np.asarray(a["tree_table"]), np.asarray(a["tree_code"])
         geom_hit = np.asarray(a["geom"])
-        if len(geom_hit) != len(hit) or geom_hit.dtype != np.uint8 or not valid_codes(geom_hit):
+        if geom_hit.ndim != 1 or len(geom_hit) != len(hit) or geom_hit.dtype != np.uint8 \
+                or not valid_codes(geom_hit):
             raise ValueError("sample geometry codes disagree with the hits")
         kept = {k: hit[m] for k, m in kept_rows(geom_hit).items()}
         if len(code) != n or (n and int(code.max()) >= len(table)) \
@@ -424,7 +433,7 @@ class RITree:
         return np.where(p >= 0, self.class_of[np.maximum(p, 0)], -1)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The tree as the cache file's named arrays (layout 4, docs/tree-format.md), samples in
+        """The tree as the cache file's named arrays (layout 5, docs/tree-format.md), samples in
         first-use order (``first_use_order``)."""
         packed = self.samples if isinstance(self.samples, PackedSamples) else \
             self.samples.packed(self.box_lo, self.box_hi)

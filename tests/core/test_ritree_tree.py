@@ -1401,40 +1401,91 @@ def test_file_keeps_only_the_hit_data_that_does_not_follow(tmp_path, mirror):
         assert np.array_equal(getattr(s, k)[a[h]], getattr(back.samples, k)[b[h]]), k
 
 
-def test_derive_stores_what_the_surface_does_not_give(sphere_st, sphere_trees, monkeypatch):
-    """Where the surface at a hit's quantized parameters is not its traced hit (here:
-    parameters moved on purpose), derive keeps the stored point and normal; glass hits keep
-    their output origins (they leave elsewhere). Block by block, the same."""
-    tree = sphere_trees[3, 3]
-    s = tree.samples
-    hit = np.flatnonzero(s.patch >= 0)
-    assert np.all(s.geom[hit] == GEOM_SURFACE)           # every glass hit derived, none at hit
-    raw = replace(s, geom=None)
+@pytest.fixture(scope="module")
+def traced_sphere(sphere_st):
+    """A sphere tree baked without ``derive``: its samples hold the traced codes."""
+    mp = pytest.MonkeyPatch()
+    mp.setattr(bake_mod, "derive", lambda samples, tracer, diag: samples)
+    try:
+        n = 8
+        cells = np.zeros((6, n, n), bool)
+        cells[5, 4:5, 4:5] = True
+        return bake(sphere_st, BakeParams(viewpoint_depth=3, direction_depth=3),
+                    region=cells_region(cells), workers=1)
+    finally:
+        mp.undo()
+
+
+def test_derive_stores_what_the_surface_does_not_give(tmp_path, sphere_st, traced_sphere,
+                                                       monkeypatch):
+    """From traced codes: a glass hit's point and normal come from the surface at its
+    quantized parameters, within a few codes of the traced ones, and it keeps its output origin
+    (it leaves elsewhere). Where the parameters do not give the traced hit (moved on purpose)
+    derive keeps the traced codes. A file of both kinds loads back to the same codes; block by
+    block, the same; a loaded tree's pending samples are refused."""
+    tree = traced_sphere
+    raw = tree.samples
+    assert not raw.geom.any()
+    hit = np.flatnonzero(raw.patch >= 0)
     moved = hit[::7]
     uv = raw.uv_q.copy()
     uv[moved] = (uv[moved].astype(np.int64) + 3000) % 65536
-    got = derive(replace(raw, uv_q=uv), sphere_st.tracer, tree.diag)
+    raw = replace(raw, uv_q=uv)
+    got = derive(raw, sphere_st.tracer, tree.diag)
     assert np.all(got.geom[moved] == GEOM_STORED)
-    assert np.array_equal(got.point_q[moved], raw.point_q[moved])
-    assert np.array_equal(got.normal_q[moved], raw.normal_q[moved])
+    for k in ("point_q", "normal_q", "out_o_q"):
+        assert np.array_equal(getattr(got, k)[moved], getattr(raw, k)[moved]), k
     rest = np.setdiff1d(hit, moved)
     assert np.all(got.geom[rest] == GEOM_SURFACE)
-    assert np.array_equal(got.point_q[rest], s.point_q[rest])
+    dp = np.abs(got.point_q[rest].astype(np.int64) - raw.point_q[rest]).max(axis=1)
+    dn = np.abs(got.normal_q[rest].astype(np.int64) - raw.normal_q[rest]).max(axis=1)
+    assert 0 < dp.max() <= 4 and 0 < dn.max() <= 8              # a few codes, not none
+    assert np.array_equal(got.out_o_q, raw.out_o_q)
+    mixed = copy.copy(tree)
+    mixed.samples = got
+    path = tmp_path / "mixed.rit"
+    ritree.save(mixed, path)
+    back = ritree.load(path)
+    assert back.samples.pending and back.samples.take(np.arange(3)).pending
+    with pytest.raises(ValueError, match="pending"):
+        derive(back.samples, sphere_st.tracer, tree.diag)
+    back.attach_geometry(sphere_st.tracer)
+    leaf = tree.dir_forest.child < 0
+    a, b = tree.dir_forest.corner[leaf].ravel(), back.dir_forest.corner[leaf].ravel()
+    h = got.patch[a] >= 0
+    for k in ("geom", "point_q", "normal_q", "out_o_q"):
+        assert np.array_equal(getattr(got, k)[a[h]], getattr(back.samples, k)[b[h]]), k
     monkeypatch.setattr(derive_mod, "DERIVE_BLOCK", 97)
-    small = derive(replace(raw, uv_q=uv), sphere_st.tracer, tree.diag)
-    filled = derive_mod.fill(replace(small, point_q=np.zeros_like(small.point_q),
-                                     normal_q=np.zeros_like(small.normal_q), pending=True),
-                             sphere_st.tracer)
+    small = derive(raw, sphere_st.tracer, tree.diag)
     for k in ("geom", "point_q", "normal_q", "out_o_q"):
         assert np.array_equal(getattr(small, k), getattr(got, k)), k
-    for k in ("point_q", "normal_q"):
-        assert np.array_equal(getattr(filled, k)[rest], getattr(got, k)[rest]), k
 
 
-@pytest.mark.parametrize("bad", [3, 4, 8, 9])
-def test_file_geometry_codes_are_checked(bad):
+def test_output_origin_at_the_hit_within_one_code(mirror, monkeypatch):
+    """A mirror ray's output origin is taken for its hit point where their traced codes differ
+    by at most one unit per axis, not by two."""
+    st, _ = mirror
+    monkeypatch.setattr(bake_mod, "derive", lambda samples, tracer, diag: samples)
+    tree = bake(st, MIRROR_PARAMS, workers=1)
+    raw = tree.samples
+    once = np.flatnonzero((raw.patch >= 0) & np.all(raw.out_o_q == raw.point_q, axis=1))
+    assert len(once) > 100
+    one, two = once[0::2], once[1::2]
+    out_o = raw.out_o_q.copy()
+    out_o[one, 0] += np.where(out_o[one, 0] < 65535, 1, -1).astype(np.uint16)
+    out_o[two, 1] += np.where(out_o[two, 1] < 65534, 2, -2).astype(np.uint16)
+    got = derive(replace(raw, out_o_q=out_o), st.tracer, tree.diag)
+    assert np.all(got.geom[one] & GEOM_OUT_AT_HIT) and not np.any(got.geom[two] & GEOM_OUT_AT_HIT)
+    assert np.array_equal(got.out_o_q[one], got.point_q[one])
+    assert np.array_equal(got.out_o_q[two], out_o[two])
+
+
+@pytest.mark.parametrize("bad", [3, 4, 8, 9, "geom 2-d", "point_q uint32", "normal_q 3 columns",
+                                 "patch 2-d"])
+def test_file_sample_codes_are_checked(bad):
     """A file's per-hit geometry codes other than derive's (an unknown bit, the low bits 3,
-    an output origin at a hit whose point is stored) are refused before any use."""
+    an output origin at a hit whose point is stored), code arrays of another dtype or shape,
+    and patches that are not a list are refused before any use."""
     packed = Samples(out_o=np.zeros((3, 3), np.float32), out_d=np.tile([0, 0, 1.0], (3, 1)),
                      point=np.zeros((3, 3), np.float32), normal=np.tile([0, 0, 1.0], (3, 1)),
                      patch=np.array([0, -1, 0], np.int32), null=np.zeros(3, bool),
@@ -1442,6 +1493,15 @@ def test_file_geometry_codes_are_checked(bad):
     a = packed.stored()
     assert len(a["geom"]) == 2
     PackedSamples.from_stored(a, packed.lo, packed.hi)
-    a["geom"] = np.array([0, bad], np.uint8)
-    with pytest.raises(ValueError, match="geometry codes"):
+    if bad == "geom 2-d":
+        a["geom"] = np.zeros((2, 1), np.uint8)
+    elif bad == "point_q uint32":
+        a["point_q"] = a["point_q"].astype(np.uint32)
+    elif bad == "normal_q 3 columns":
+        a["normal_q"] = np.zeros((2, 3), np.int16)
+    elif bad == "patch 2-d":
+        a["patch"] = a["patch"][:, None]
+    else:
+        a["geom"] = np.array([0, bad], np.uint8)
+    with pytest.raises(ValueError, match="geometry codes|codes|integers"):
         PackedSamples.from_stored(a, packed.lo, packed.hi)
