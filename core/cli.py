@@ -111,6 +111,11 @@ def _bake_opts(p):
                    metavar="DEG", help="split viewpoint cells whose camera test rays, answered "
                    "through the tree, miss the exact ones by more than this (degrees; default "
                    f"{d.viewpoint_tolerance_deg}; camera-region bakes only)")
+    p.add_argument("--finest-min-traced", type=int, default=d.finest_min_traced, metavar="N",
+                   help="split cells to the finest viewpoint level only where at least N of the "
+                   "cameras' rays would be traced at the 2-degree tolerance (default "
+                   f"{d.finest_min_traced}: by the rule of the other levels; camera-region "
+                   "bakes only)")
     p.add_argument("--search-steps", type=int, default=d.search_steps,
                    help="binary-search steps for the extra samples of two-class cells "
                    f"(default {d.search_steps})")
@@ -127,7 +132,7 @@ def _bake_params(args):
         viewpoint_refine=args.viewpoint_refine,
         min_direction_depth=args.min_direction_depth, tolerance_deg=args.tolerance,
         tolerance_dist=args.tolerance_dist, viewpoint_tolerance_deg=args.viewpoint_tolerance,
-        search_steps=args.search_steps).validate()
+        finest_min_traced=args.finest_min_traced, search_steps=args.search_steps).validate()
 
 
 def _check_writable(path, folder=False):

@@ -44,6 +44,9 @@ from .verify import MEASURE_MIRROR_RAYS, viewpoint_errors
 
 # The angle threshold (degrees) of the refinement rule (refine_rule): the paper's value.
 REFINE_ANGLE_DEG = 20.0
+# The baked-error tolerance (degrees) under which finest_rule counts traced rays: the
+# render-time default's value when the rule was made (stop 22).
+FINEST_TOLERANCE_DEG = 2.0
 # The direction forest's per-node arrays a shard returns and the merge interleaves.
 _NODE_FIELDS = ("child", "corner", "level", "ix", "iy", "dir_err", "dir_flags")
 TRACE_CHUNK = 8192          # rays per worker task (bounds worker memory, keeps progress fluid)
@@ -666,17 +669,26 @@ class _Baker:
     def refine(self, region) -> bool:
         """One refinement pass: split the viewpoint cells where the region's rays are traced
         for lack of interpolants or by the thresholds, or where the measured viewpoint-level
-        error exceeds ``viewpoint_tolerance_deg``; False when nothing is left to split."""
+        error exceeds ``viewpoint_tolerance_deg``; False when nothing is left to split. With
+        ``finest_min_traced`` > 0, the pass that makes the finest level (and any later one)
+        splits only the cells through which at least that many of the region's rays are traced
+        under ``finest_rule``: the last level goes where tracing costs most."""
         from .locate import entry_points
         from .query import WHY_THRESHOLD, WHY_USABLE, TreeQuery
         tree = self.tree()
         o, d, tmax = region.rays
-        _, ans, why, _ = TreeQuery(tree, self.st, refine_rule())(o, d, tmax)
-        bad = (why == WHY_USABLE) | (why == WHY_THRESHOLD)
-        t_in, face, x, y, _ = entry_points(tree, o[bad], d[bad])
-        leaf, _, _ = self.vpf.locate(face, x, y)
-        err = self.measure(region, tree)
-        leaf = np.union1d(leaf[leaf >= 0], np.flatnonzero(err > self.params.viewpoint_tolerance_deg))
+        finest = int(self.vpf.level[self.vpf.child < 0].max()) + 1 >= self.Dmax
+        if finest and self.params.finest_min_traced > 0:
+            self.measure(region, tree)
+            leaf = self._traced_cells(o, d, tmax)
+        else:
+            _, ans, why, _ = TreeQuery(tree, self.st, refine_rule())(o, d, tmax)
+            bad = (why == WHY_USABLE) | (why == WHY_THRESHOLD)
+            t_in, face, x, y, _ = entry_points(tree, o[bad], d[bad])
+            leaf, _, _ = self.vpf.locate(face, x, y)
+            err = self.measure(region, tree)
+            leaf = np.union1d(leaf[leaf >= 0],
+                              np.flatnonzero(err > self.params.viewpoint_tolerance_deg))
         leaf = leaf[self.vpf.level[leaf] < self.Dmax]
         if len(leaf) == 0:
             return False
@@ -686,6 +698,19 @@ class _Baker:
         if len(vps):
             self._bake_directions(self._add_trees(vps, self._slot_fn(region, level)))
         return True
+
+    def _traced_cells(self, o, d, tmax) -> np.ndarray:
+        """Viewpoint leaves through which at least ``finest_min_traced`` of the rays (o, d,
+        tmax) are traced under ``finest_rule``, on the tree as it is now (its viewpoint errors
+        just measured)."""
+        from .locate import locate
+        from .query import TRACED, TreeQuery
+        tree = self.tree()
+        _, ans, _, _ = TreeQuery(tree, self.st, finest_rule())(o, d, tmax)
+        tr = ans == TRACED
+        loc, _ = locate(tree, o[tr], d[tr], tmax[tr])
+        count = np.bincount(loc.vnode, minlength=len(self.vpf.child))
+        return np.flatnonzero(count >= self.params.finest_min_traced)
 
     def measure(self, region, tree=None) -> np.ndarray:
         """Viewpoint-level errors of the current tree on the region's cameras (verify.py),
@@ -766,6 +791,17 @@ def refine_rule():
     with its 20-degree angle threshold (not the render-time default, which may change)."""
     from .query import QueryOptions
     return QueryOptions(angle_deg=REFINE_ANGLE_DEG, max_error_deg=None)
+
+
+def finest_rule():
+    """The query rule whose traced rays choose the cells of the finest viewpoint level
+    (``finest_min_traced``): the baked-error tolerance at FINEST_TOLERANCE_DEG with exact mirror
+    hits, every other rule off, pinned here (not the render-time default, which may change)."""
+    from .query import QueryOptions
+    return QueryOptions(policy="ri", extrapolation=None, angle_deg=None, distance=None,
+                        null_interp=True, max_error_deg=FINEST_TOLERANCE_DEG,
+                        fallback_angle_deg=REFINE_ANGLE_DEG, path_identity=False,
+                        mirror_rays="newton")
 
 
 def _take(s: Samples, idx) -> Samples:

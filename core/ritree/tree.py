@@ -58,6 +58,10 @@ class BakeParams:
     tolerance_dist: float = 0.002     # ... (or first hit / normal) misses the traced one by more
     viewpoint_tolerance_deg: float = 0.25  # split viewpoint cells whose camera test rays answered
                                       # through the tree miss the exact ones by more (verify.py)
+    finest_min_traced: int = 0        # > 0: the finest viewpoint level (depth + refine) splits
+                                      # only cells through which at least this many camera rays
+                                      # are traced under the 2-degree baked-error tolerance
+                                      # (bake.finest_rule; 0: by the rule of the other levels)
     search_steps: int = 4             # binary-search steps for the extra samples (paper 4.3):
                                       # a boundary to 1/16 of a cell edge (see docs/ritree.md)
     pad: float = 1e-3                 # bounding-box padding, relative to the diagonal
@@ -76,6 +80,7 @@ class BakeParams:
             (np.isfinite(self.viewpoint_tolerance_deg) and self.viewpoint_tolerance_deg > 0,
              "viewpoint_tolerance_deg must be > 0"),
             (0 <= self.search_steps <= 30, "search_steps must be in 0..30"),
+            (0 <= self.finest_min_traced <= 1 << 30, "finest_min_traced must be in 0..2^30"),
             (np.isfinite(self.pad) and 0 <= self.pad <= 0.5, "pad must be in [0, 0.5]"),
         ]
         for ok, msg in checks:

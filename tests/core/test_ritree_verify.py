@@ -288,3 +288,62 @@ def test_viewpoint_errors_do_not_follow_the_render_time_mirror_rule(mirror, monk
     mine = TreeQuery(tree, st, paper(angle_deg=None, mirror_rays=verify.MEASURE_MIRROR_RAYS))
     o, d, _ = verify.test_rays(tree, vp_cells(tree), cams)
     assert not np.array_equal(other(o, d)[0].out_dir, mine(o, d)[0].out_dir)
+
+
+def finest_bake(k, spy=None):
+    """The glass sphere's close view baked with ``finest_min_traced`` k (viewpoint depth 2 +
+    2 refinement levels); ``spy(baker, cells)`` sees each finest-level pass's choice."""
+    from riray.ritree import bake as bake_mod
+    scene = build("glass_sphere")
+    st = SceneTracer(scene)
+    params = BakeParams(viewpoint_depth=2, direction_depth=3, viewpoint_refine=2,
+                        finest_min_traced=k)
+    cam = scene.camera("close")
+    region = region_for_cameras(st, params, [cam], SIZE, SIZE)
+    orig = bake_mod._Baker._traced_cells
+
+    def traced_cells(self, o, d, tmax):
+        cells = orig(self, o, d, tmax)
+        if spy is not None:
+            spy(self, st, (o, d, tmax), cells)
+        return cells
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(bake_mod._Baker, "_traced_cells", traced_cells)
+        return bake(st, params, region, workers=1)
+
+
+def test_finest_level_goes_where_rays_are_traced():
+    """With finest_min_traced k, the pass that makes the finest viewpoint level splits exactly
+    the cells through which at least k of the camera's rays are traced at the 2-degree
+    tolerance: counted here from the rays' box entry points (not the query's locator); with k
+    too large for any cell, no cell reaches the finest level; with k = 0 the finest level is
+    made by the other levels' rule."""
+    from riray.ritree.bake import finest_rule
+    from riray.ritree.locate import entry_points
+    from riray.ritree.query import TRACED
+    seen = []
+
+    def spy(baker, st, rays, cells):
+        o, d, tmax = rays
+        tree = baker.tree()
+        ans = TreeQuery(tree, st, finest_rule())(o, d, tmax)[1]
+        tr = ans == TRACED
+        _, face, x, y, _ = entry_points(tree, o[tr], d[tr])
+        leaf, _, _ = baker.vpf.locate(face, x, y)
+        count = np.bincount(leaf[leaf >= 0], minlength=len(baker.vpf.child))
+        seen.append((count, cells))
+
+    probe = finest_bake(1, spy)
+    count, cells = seen[0]
+    positive = np.sort(count[count > 0])
+    assert len(positive) >= 4
+    k = int(positive[len(positive) // 2])               # a count some cell has exactly
+    seen.clear()
+    tree = finest_bake(k, spy)
+    count, cells = seen[0]
+    assert np.array_equal(cells, np.flatnonzero(count >= k)) and np.any(count == k)
+    assert 0 < len(cells) < np.sum(count > 0)
+    finest = tree.vp_forest.level.max()
+    assert finest == 4 and probe.vp_forest.level.max() == 4
+    assert finest_bake(0).vp_forest.level.max() == 4
+    assert finest_bake(1 << 30).vp_forest.level.max() == 3
