@@ -85,7 +85,7 @@ ROW_LABELS = {"exact": "ray traced", "interp": "interpolated (no angle threshold
               "interp_reflect": "default tolerance, mirror rays from the interpolated normal "
                                 "(--mirror-rays reflect)",
               "raytree": "raytree policy (Bala et al.)",
-              "deeper": "default tolerance, deeper tree (viewpoint depth {vp} + refine {vr}, "
+              "deeper": "default tolerance, deeper tree (viewpoint depth {vp} + refine {vr}{fm}, "
                          "direction depth {dd})",
               "deeper_reflect": "deeper tree, mirror rays from the interpolated normal",
               "deeper_rules": "deeper tree, default rules without the tolerance (one pass)"}
@@ -114,9 +114,10 @@ class BenchConfig:
     viewpoint_depth: int = 4              # table trees
     direction_depth: int = 5
     tolerance: float = 0.5                # bake tolerance of the table trees (degrees)
-    # (viewpoint depth, direction depth, viewpoint refine) of the "deeper" row's own tree: the
-    # default tolerance on a tree the bake may refine further, where its tests fail (None: no row)
-    deeper_tree: tuple | None = (4, 7, 3)
+    # (viewpoint depth, direction depth, viewpoint refine[, finest_min_traced]) of the "deeper"
+    # row's own tree: the default tolerance on a tree the bake may refine further, where its
+    # tests fail, the finest level only where that many camera rays are traced (None: no row)
+    deeper_tree: tuple | None = (4, 7, 4, 20)
     angle: float = 20.0                   # the "with threshold" row (the CLI default)
     sweeps: bool = True
     sweep_scenes: tuple = ("glass_sphere", "vase_glass")
@@ -148,10 +149,10 @@ class BenchConfig:
             raise ValueError(f"repeats: must be >= 1 (got {self.repeats}, {self.sweep_repeats})")
         self.bake_params(self.viewpoint_depth, self.direction_depth, self.tolerance)
         if self.deeper_tree is not None:
-            if len(self.deeper_tree) != 3:
+            if len(self.deeper_tree) not in (3, 4):
                 raise ValueError("deeper_tree: (viewpoint depth, direction depth, viewpoint "
-                                 f"refine) (got {self.deeper_tree!r})")
-            self.bake_params(*self.deeper_tree[:2], self.tolerance, self.deeper_tree[2])
+                                 f"refine[, finest_min_traced]) (got {self.deeper_tree!r})")
+            self.bake_params(*self.deeper_tree[:2], self.tolerance, *self.deeper_tree[2:])
         for vp in self.vp_depths:
             for dd in self.dir_depths:
                 self.bake_params(vp, dd, self.tolerance)
@@ -163,18 +164,19 @@ class BenchConfig:
                 raise ValueError(f"thresholds: must be finite and >= 0 (got {a!r})")
         return self
 
-    def bake_params(self, vp, dd, tol, refine=None) -> ritree.BakeParams:
+    def bake_params(self, vp, dd, tol, refine=None, finest=0) -> ritree.BakeParams:
         """BakeParams with the angular tolerance ``tol`` and the distance tolerance scaled with
         it from the defaults (0.5 deg <-> 0.002 of the box diagonal): one accuracy knob.
-        ``refine``: viewpoint refinement levels (None: the default)."""
+        ``refine``: viewpoint refinement levels (None: the default); ``finest``:
+        finest_min_traced."""
         d = ritree.BakeParams()
         return ritree.BakeParams(viewpoint_depth=int(vp), direction_depth=int(dd),
                                  viewpoint_refine=d.viewpoint_refine if refine is None
                                  else int(refine),
                                  min_direction_depth=min(d.min_direction_depth, int(dd)),
                                  tolerance_deg=float(tol),
-                                 tolerance_dist=d.tolerance_dist * float(tol) / d.tolerance_deg
-                                 ).validate()
+                                 tolerance_dist=d.tolerance_dist * float(tol) / d.tolerance_deg,
+                                 finest_min_traced=int(finest)).validate()
 
 
 # The --quick preset: a smoke check (< 2 minutes on two cores at its default size).
@@ -496,9 +498,9 @@ def run(cfg: BenchConfig, quiet=False) -> dict:
 
 def _bake_deeper(cfg, name, st, scene, cam, workers, tree_dir, log) -> tuple:
     """The view's tree baked at ``cfg.deeper_tree``'s depths: (tree, bake record)."""
-    vp, dd, vr = cfg.deeper_tree
-    tree, brec = bake_view(st, scene, cam, cfg.size, cfg.bake_params(vp, dd, cfg.tolerance, vr),
-                           workers, tree_dir)
+    vp, dd, *rest = cfg.deeper_tree
+    tree, brec = bake_view(st, scene, cam, cfg.size,
+                           cfg.bake_params(vp, dd, cfg.tolerance, *rest), workers, tree_dir)
     log(f"{name}/{cam.name}: deeper tree baked in {brec['bake_s']:.1f} s, "
         f"{brec['cache_bytes'] / 1e6:.2f} MB")
     return tree, brec
@@ -508,11 +510,12 @@ def _deeper_row(cfg, name, cam, r, brec, log, kind="deeper") -> dict:
     """A row on the deeper tree ("deeper": the default options; "deeper_reflect": mirror rays
     from the interpolated normal), measured in the view's batch against its own interleaved exact halves (its
     speed-up is of the same passes)."""
-    vp, dd, vr = cfg.deeper_tree
+    vp, dd, vr, *fm = cfg.deeper_tree
     log(f"{name}/{cam.name}: {kind} traced {r['rays_traced']}/{r['object_rays']}, "
         f"object-only {r['exact_object_cpu_s']:.2f} -> {r['object_cpu_s']:.2f} s", step=False)
     return {"scene": name, "view": cam.name, "row": kind,
-            "label": ROW_LABELS[kind].format(vp=vp, dd=dd, vr=vr),
+            "label": ROW_LABELS[kind].format(vp=vp, dd=dd, vr=vr, fm=f" where >= {fm[0]} rays "
+                                             "are traced" if fm and fm[0] else ""),
             **_strip(r), **_bake_cols(brec)}
 
 

@@ -76,7 +76,7 @@ def test_tables_consistent(bench):
             assert 0 <= int(r["hit_disagreements"]) <= answered
             assert 0 <= int(r["null_disagreements"]) <= answered
         # the deeper tree is its own bake, at the configured depths
-        vp, dd, vr = res["config"]["deeper_tree"]
+        vp, dd, vr, *_ = res["config"]["deeper_tree"]
         t = rs["deeper"]
         assert (int(t["viewpoint_depth"]), int(t["direction_depth"]), int(t["viewpoint_refine"])) \
             == (vp, dd, vr) != (int(ex["viewpoint_depth"]), int(ex["direction_depth"]),
