@@ -11,7 +11,7 @@ one code unit of the hit point's is that point. Per sample ``geom`` says what fo
 low two bits GEOM_STORED, GEOM_SURFACE (the surface's normal) or GEOM_FLIPPED (its opposite:
 a sample's normal faces its ray), and the bit GEOM_OUT_AT_HIT (the output origin is the hit
 point). The bake applies ``derive`` in memory, so a tree renders the same before its save and
-after its load; a loaded tree gets them back from its object's surfaces (``fill``, which
+after its load (on another machine a code may differ by one unit); a loaded tree gets them back from its object's surfaces (``fill``, which
 ``TreeQuery`` calls).
 """
 
@@ -31,7 +31,7 @@ GEOM_OUT_AT_HIT = 4                                   # the output origin is the
 # The surface at a sample's quantized parameters stands for its traced hit only within these:
 # the point within this fraction of the object's (unpadded) box diagonal, the normal within
 # this angle. 16-bit parameters move a hit by at most half a step times the surface's
-# parametric speed: on the sample scenes' full and camera trees (11 M hits) by at most
+# parametric speed: on the sample scenes' full and camera trees (6.9 M hits) by at most
 # 3.5e-5 of the diagonal (three point codes) and 0.026 degrees.
 DERIVE_MAX_MOVE_REL = 1e-4
 DERIVE_MAX_TURN_DEG = 0.1
@@ -52,8 +52,7 @@ def derive(samples, tracer, diag: float):
                   pending=False)
     move = DERIVE_MAX_MOVE_REL * diag
     min_cos = np.cos(np.radians(DERIVE_MAX_TURN_DEG))
-    hits = np.flatnonzero(samples.patch >= 0)
-    for hit in np.array_split(hits, max(1, -(-len(hits) // DERIVE_BLOCK))):
+    for hit in _blocks(np.flatnonzero(samples.patch >= 0)):
         pt, nm, ok = surface_at(tracer, samples.patch[hit], decode_params(samples.uv_q[hit]))
         p0 = decode_points(samples.point_q[hit], samples.lo, samples.hi)
         n0 = decode_unit_vectors(samples.normal_q[hit])
@@ -79,8 +78,7 @@ def fill(samples, tracer):
     object's tree)."""
     out = replace(samples, point_q=samples.point_q.copy(), normal_q=samples.normal_q.copy(),
                   out_o_q=samples.out_o_q.copy(), pending=False)
-    rows_all = np.flatnonzero(samples.geom & GEOM_NORMAL != GEOM_STORED)
-    for rows in np.array_split(rows_all, max(1, -(-len(rows_all) // DERIVE_BLOCK))):
+    for rows in _blocks(np.flatnonzero(samples.geom & GEOM_NORMAL != GEOM_STORED)):
         patch = samples.patch[rows].astype(np.int64)
         if len(rows) and patch.max() >= len(tracer.piece_base):
             raise ValueError("the tree's samples hit patches this object does not have")
@@ -94,6 +92,11 @@ def fill(samples, tracer):
     at = np.flatnonzero(samples.geom & GEOM_OUT_AT_HIT)
     out.out_o_q[at] = out.point_q[at]
     return out
+
+
+def _blocks(rows: np.ndarray) -> list[np.ndarray]:
+    """``rows`` in consecutive blocks of at most DERIVE_BLOCK (one, possibly empty, at least)."""
+    return np.array_split(rows, max(1, -(-len(rows) // DERIVE_BLOCK)))
 
 
 def valid_codes(geom: np.ndarray) -> bool:

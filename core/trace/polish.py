@@ -66,11 +66,8 @@ def _polish(tracer: PatchTracer, o, d, seeds: Seeds, max_move: float, min_cos: f
     n = len(o)
     res = PatchHit.misses(n)
     patch = np.asarray(seeds.patch, np.int64)
-    live = np.flatnonzero((patch >= 0) & (tracer.piece_base[np.maximum(patch, 0)] >= 0))
-    dom = tracer.uv_domain[patch[live]]
-    uvn = np.asarray(seeds.uvn, np.float64)
-    u = dom[:, 0] + uvn[live, 0] * (dom[:, 1] - dom[:, 0])
-    v = dom[:, 2] + uvn[live, 1] * (dom[:, 3] - dom[:, 2])
+    live = np.flatnonzero(_on_nurbs(tracer, patch))
+    u, v = _nurbs_uv(tracer, patch[live], np.asarray(seeds.uvn, np.float64)[live])
     for _ in range(POLISH_RUNS):
         if len(live) == 0:
             break
@@ -180,14 +177,24 @@ def surface_at(tracer: PatchTracer, patch, uvn):
     [0, 1]^2: (points (N, 3), unit normals (N, 3) as the surface is oriented, ok (N,)); ``ok``
     is False (and the values zero) on mesh patches."""
     patch = np.asarray(patch, np.int64)
-    uvn = np.asarray(uvn, np.float64)
     P, nrm = np.zeros((len(patch), 3)), np.zeros((len(patch), 3))
-    ok = (patch >= 0) & (tracer.piece_base[np.maximum(patch, 0)] >= 0)
+    ok = _on_nurbs(tracer, patch)
     live = np.flatnonzero(ok)
     if len(live):
-        dom = tracer.uv_domain[patch[live]]
-        u = dom[:, 0] + uvn[live, 0] * (dom[:, 1] - dom[:, 0])
-        v = dom[:, 2] + uvn[live, 1] * (dom[:, 3] - dom[:, 2])
+        u, v = _nurbs_uv(tracer, patch[live], np.asarray(uvn, np.float64)[live])
         k, s, t = _piece_of(tracer, patch[live], u, v)
         P[live], nrm[live] = _surface(tracer, k, s, t, u, v)
     return P, nrm, ok
+
+
+def _on_nurbs(tracer, patch) -> np.ndarray:
+    """Whether each of ``patch`` (int64, -1: none) is a NURBS patch of ``tracer``."""
+    return (patch >= 0) & (tracer.piece_base[np.maximum(patch, 0)] >= 0)
+
+
+def _nurbs_uv(tracer, patch, uvn):
+    """NURBS parameters (u, v) of normalized parameters ``uvn`` (N, 2) on NURBS ``patch``
+    (the inverse of PatchTracer.normalized_uv)."""
+    dom = tracer.uv_domain[patch]
+    return (dom[:, 0] + uvn[:, 0] * (dom[:, 1] - dom[:, 0]),
+            dom[:, 2] + uvn[:, 1] * (dom[:, 3] - dom[:, 2]))
