@@ -79,9 +79,10 @@ def _tree_opts(p):
     p.add_argument("--path-identity", action="store_true",
                    help="trace a ray whose usable samples differ in ray-tree hash (event "
                    "sequence) or whose leaves / viewpoint cell the bake saw change path")
-    p.add_argument("--null-rays", choices=("interpolate", "trace"), default="interpolate",
-                   help="a ray whose interpolants are all null (trapped) is answered null "
-                   "(interpolate, the default) or traced (trace, the paper)")
+    p.add_argument("--null-rays", choices=("interpolate", "trace"), default="trace",
+                   help="a ray whose interpolants are all null (trapped) is traced (trace, the "
+                   "default and the paper) or answered null (interpolate: faster, but a "
+                   "trapped region can hide an exit no sample shows)")
     p.add_argument("--mirror-rays", choices=MIRROR_RAYS, default=QueryOptions.mirror_rays,
                    help="mirrors, policy ri: a ray whose usable samples all reflect once leaves "
                    "from the exact hit Newton finds on their patch from the interpolated patch "

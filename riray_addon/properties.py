@@ -129,9 +129,11 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                                                 "interpolants' triangle")
     extrapolation: FloatProperty(name="Extrapolation", default=0.1, min=0.0, max=1.0,
                                  description="Allowed barycentric distance below 0")
-    use_null_interp: BoolProperty(name="Interpolate null rays", default=True,
+    use_null_interp: BoolProperty(name="Interpolate null rays", default=False,
                                   description="A ray whose interpolants are all trapped "
-                                              "(null) is answered null instead of traced")
+                                              "(null) is answered null instead of traced "
+                                              "(faster; a trapped region can hide an exit "
+                                              "no sample shows)")
     use_max_error: BoolProperty(name="Max error", default=True,
                                 description="Interpolate a ray only where the errors the bake "
                                             "measured in its four direction leaves and its "

@@ -750,13 +750,14 @@ def test_null_answer_needs_null_interpolants(mirror):
     """Hand-made tree with viewpoints 0-2 all null and viewpoint 3 live: queries inside the
     triangle of viewpoints 0, 1, 2 are answered null with the affine hit point of the samples;
     the rest have neither three live nor three null viewpoints and are traced; with
-    null_interp off nothing is answered null."""
+    null_interp off (the default: a trapped region can hide an exit) nothing is answered
+    null."""
     st, _ = mirror
     null = np.zeros(16, bool)
     null[:12] = True
     tree = handmade_tree(st, affine_values, null=null)
     o, d, al, be, lx, ly = handmade_queries(3000, 6)
-    res, ans, why, _ = TreeQuery(tree, st, paper(angle_deg=None))(o, d)
+    res, ans, why, _ = TreeQuery(tree, st, paper(angle_deg=None, null_interp=True))(o, d)
     check_answers(res, ans, why)
     X = np.stack([2 * al - 1, 2 * be - 1, 2 * lx - 1, 2 * ly - 1], 1)
     inside = al + be < 1 - 1e-9
@@ -764,8 +765,10 @@ def test_null_answer_needs_null_interpolants(mirror):
     assert np.all(ans[inside] == NULL_S) and np.all(ans[outside] == TRACED)
     assert np.allclose(res.point[inside], (X @ A_P)[inside], atol=1e-6)
     assert np.all(res.out_dir[inside] == 0)
-    _, ans_p, why_p, _ = TreeQuery(tree, st, paper(angle_deg=None, null_interp=False))(o, d)
-    assert np.all(ans_p == TRACED) and np.all(why_p == WHY_USABLE)
+    for opt in (paper(angle_deg=None, null_interp=False), paper(angle_deg=None),
+                QueryOptions(max_error_deg=None)):
+        _, ans_p, why_p, _ = TreeQuery(tree, st, opt)(o, d)
+        assert np.all(ans_p == TRACED) and np.all(why_p == WHY_USABLE)
 
 
 def test_angle_threshold_drops_an_outlying_corner(mirror):
