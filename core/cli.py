@@ -390,6 +390,7 @@ def cmd_bench(args):
         repeats=args.repeats, workers=args.workers, viewpoint_depth=args.viewpoint_depth,
         direction_depth=args.direction_depth, tolerance=args.tolerance, angle=args.angle,
         sweep_scenes=args.sweep_scenes, sweep_repeats=args.sweep_repeats,
+        pareto_repeats=args.pareto_repeats,
         sweeps=False if args.no_sweeps else None, plots=False if args.no_plots else None,
         keep_trees=args.keep_trees or None)
     res = run(cfg, quiet=args.quiet)
@@ -506,6 +507,9 @@ def build_parser():
                    help="scenes swept (close view; default: glass_sphere vase_glass)")
     p.add_argument("--sweep-repeats", type=int, default=None,
                    help="passes per sweep point (default 1)")
+    p.add_argument("--pareto-repeats", type=int, default=None,
+                   help="passes per policy point of the Pareto curves, median taken "
+                   "(default 3; --quick 1)")
     p.add_argument("--no-sweeps", action="store_true", help="tables only")
     p.add_argument("--no-plots", action="store_true", help="no PNG plots (no matplotlib needed)")
     p.add_argument("--keep-trees", action="store_true", help="keep the baked .rit files in "

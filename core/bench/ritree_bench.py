@@ -27,7 +27,8 @@ in its own process, so the other core is busy for both halves of nearly every pa
 view split over two processes is not: the share that finishes last runs its second half alone
 on an idle machine, and that half, exact or interpolated by the pass's order, ran measurably
 faster.) Each interpolated configuration gets ``repeats`` passes (sweep points
-``sweep_repeats``); the exact row is the median over all passes of the view, each interpolated
+``sweep_repeats``, the policy points of the Pareto curves at least ``pareto_repeats``); the
+exact row is the median over all passes of the view, each interpolated
 row the median over its own, and of its own passes' exact halves (``exact_object_cpu_s``).
 Work counts and errors are deterministic (first pass). The tree is saved to a .rit file and
 loaded back (memory-mapped, packed samples) before rendering, as ``riray render --tree`` would
@@ -75,6 +76,7 @@ from ..ritree.query import (DEFAULT_MAX_ERROR_DEG, EXTRA_S, EXTRAPOLATED_S, FULL
 from ..ritree.region import region_for_cameras
 from ..scene.samples import SAMPLES, build
 from .exact_bench import machine
+from .pareto import dominance, dominance_markdown
 
 VIEWS = ("far", "close", "zoom")
 ROWS = ("exact", "interp", "interp_angle", "interp_tol", "interp_reflect", "raytree", "deeper",
@@ -123,13 +125,14 @@ class BenchConfig:
     sweep_scenes: tuple = ("glass_sphere", "vase_glass")
     sweep_view: str = "close"
     sweep_repeats: int = 1
+    pareto_repeats: int = 3               # passes per policy point (the Pareto curves), median
     vp_depths: tuple = (3, 4, 5)
     dir_depths: tuple = (4, 5, 6)
     tolerances: tuple = (0.25, 0.5, 1.0, 2.0)
     angles: tuple = (None, 45.0, 20.0, 10.0, 5.0)
     distances: tuple = (None, 0.1, 0.05, 0.02)
     extrapolations: tuple = (None, 0.1, 0.25, 0.5)
-    max_errors: tuple = (8.0, 4.0, 2.0, 1.0, 0.5, 0.25)   # --max-error (no angle threshold)
+    max_errors: tuple = (16.0, 8.0, 4.0, 2.0, 1.0, 0.5, 0.25)   # --max-error (no angle threshold)
     path_max_errors: tuple = (4.0, 2.0)          # --max-error with --path-identity
     plots: bool = True
     images: bool = True
@@ -145,8 +148,9 @@ class BenchConfig:
                 raise ValueError(f"views: unknown view {v!r}; views: {', '.join(VIEWS)}")
         if self.size < 2:
             raise ValueError(f"size: must be >= 2 (got {self.size})")
-        if self.repeats < 1 or self.sweep_repeats < 1:
-            raise ValueError(f"repeats: must be >= 1 (got {self.repeats}, {self.sweep_repeats})")
+        if min(self.repeats, self.sweep_repeats, self.pareto_repeats) < 1:
+            raise ValueError(f"repeats: must be >= 1 (got {self.repeats}, {self.sweep_repeats}, "
+                             f"{self.pareto_repeats})")
         self.bake_params(self.viewpoint_depth, self.direction_depth, self.tolerance)
         if self.deeper_tree is not None:
             if len(self.deeper_tree) not in (3, 4):
@@ -184,7 +188,8 @@ QUICK = dict(scenes=("glass_sphere", "vase_mirror"), views=("close", "zoom"), si
              repeats=1, viewpoint_depth=3, direction_depth=4, sweep_scenes=("glass_sphere",),
              vp_depths=(2, 3), dir_depths=(3, 4), tolerances=(0.5, 2.0),
              angles=(None, 20.0, 5.0), distances=(None, 0.05), extrapolations=(None, 0.25),
-             max_errors=(4.0, 1.0), path_max_errors=(2.0,), deeper_tree=(3, 5, 2), quick=True)
+             max_errors=(4.0, 1.0), path_max_errors=(2.0,), deeper_tree=(3, 5, 2), pareto_repeats=1,
+             quick=True)
 
 
 # --------------------------------------------------------------------------- measuring
@@ -535,10 +540,16 @@ def _drop_tree(tree, brec, cfg):
         Path(brec["tree_path"]).unlink(missing_ok=True)
 
 
+# The sweeps of the policy points (``_policy_points``), which the Pareto judgement compares.
+POLICY_SWEEPS = ("angle", "max_error", "reflect", "path", "raytree")
+
+
 def _point_configs(cfg, points) -> dict:
     """measure_configs' entries of sweep ``points`` [(tree, bake record, sweep, key, options)]:
-    cfg.sweep_repeats passes each."""
-    return {f"point{i}": (pt[0], pt[4], cfg.sweep_repeats) for i, pt in enumerate(points)}
+    cfg.sweep_repeats passes each, policy points at least cfg.pareto_repeats."""
+    return {f"point{i}": (pt[0], pt[4], max(cfg.sweep_repeats, cfg.pareto_repeats)
+                          if pt[2] in POLICY_SWEEPS else cfg.sweep_repeats)
+            for i, pt in enumerate(points)}
 
 
 def _point_rows(cfg, name, points, rows, log) -> list:
@@ -670,7 +681,8 @@ def command_line(cfg: BenchConfig) -> str:
     flags = {"scenes": "--scenes", "views": "--views", "size": "--size", "repeats": "--repeats",
              "viewpoint_depth": "--viewpoint-depth", "direction_depth": "--direction-depth",
              "tolerance": "--tolerance", "angle": "--angle", "sweep_scenes": "--sweep-scenes",
-             "sweep_repeats": "--sweep-repeats", "workers": "--workers"}
+             "sweep_repeats": "--sweep-repeats", "pareto_repeats": "--pareto-repeats",
+             "workers": "--workers"}
     for k, flag in flags.items():
         v = getattr(cfg, k)
         if v != getattr(ref, k):
@@ -733,6 +745,7 @@ def write_outputs(result, out: Path, plots=True) -> list:
         p = out / "sweeps.csv"
         _write_csv(p, result["sweeps"], SWEEP_CSV)
         written.append(p)
+    result["pareto"] = dominance(result["sweeps"])
     p = out / "results.json"
     p.write_text(json.dumps(_json_safe(result), indent=1) + "\n")
     written.append(p)
@@ -741,7 +754,8 @@ def write_outputs(result, out: Path, plots=True) -> list:
     written.append(p)
     if result["sweeps"]:
         p = out / "sweeps.md"
-        p.write_text(sweeps_markdown(result["sweeps"]) + "\n")
+        p.write_text(sweeps_markdown(result["sweeps"]) + "\n\n"
+                     + dominance_markdown(result["sweeps"]) + "\n")
         written.append(p)
     if plots:
         try:

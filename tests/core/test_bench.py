@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from riray.bench.pareto import dominance
 from riray.bench.plots import pareto_front
 from riray.bench.ritree_bench import ROWS, BenchConfig, config_from_args
 from riray.cli import main
@@ -150,6 +151,22 @@ def test_sweeps_consistent(bench):
     for r in rows:
         assert float(r["bake_s"]) > 0 and int(r["cache_bytes"]) > 0
         assert 0.0 <= float(r["traced_fraction"]) <= 1.0
+    # the Pareto judgement names, per threshold point, tolerance points that beat it in the CSV
+    res = json.loads((bench / "results.json").read_text())
+    assert sorted(p["scene"] for p in res["pareto"]) == ["glass_sphere", "vase_mirror"]
+    assert "tolerance dominate the angle threshold" in (bench / "sweeps.md").read_text()
+    for judged in res["pareto"]:
+        rs = [r for r in rows if r["scene"] == judged["scene"]]
+        thr = [r for r in rs if r["sweep"] == "angle"]
+        tol = {f"{float(r['max_error']):g} deg": r for r in rs if r["sweep"] == "max_error"}
+        assert len(judged["points"]) == len(thr)
+        for t, p in zip(thr, judged["points"]):
+            for name in p["by_curve"]:
+                c = tol[name]
+                assert float(c["object_speedup"]) >= float(t["object_speedup"])
+                for k in ("angle_mean_deg", "angle_p99_deg"):
+                    assert float(c[k] or 0) <= float(t[k] or 0) + 1e-6
+        assert judged["curve_dominates"] == all(p["by_curve"] for p in judged["points"])
     # deeper direction trees never hold fewer samples (same viewpoint depth, same tolerance)
     depth = [r for r in rows if r["sweep"] == "depth"]
     for vp in q.vp_depths:
@@ -173,6 +190,38 @@ def test_disagreements_count_both_directions():
 def test_pareto_front():
     pts = [(1.0, 5.0), (2.0, 3.0), (2.5, 4.0), (3.0, 1.0), (0.5, 9.0), (3.0, 2.0)]
     assert pareto_front(pts) == [4, 0, 1, 3]
+
+
+def _row(scene, sweep, speedup, mean, p99, angle=None, max_error=None):
+    return {"scene": scene, "sweep": sweep, "object_speedup": speedup, "angle_mean_deg": mean,
+            "angle_p99_deg": p99, "angle": angle, "max_error": max_error}
+
+
+def test_dominance_of_the_threshold_curve():
+    """Issue #11's Pareto judgement: a threshold point is dominated by a tolerance point at
+    least as fast with mean and p99 no higher (ties count); a faster point with a higher p99
+    does not; "reflect" points count only for "any"; a threshold point that traces every ray
+    (no error reported) is dominated by one whose errors are at the tracer's own 1e-9 deg."""
+    rows = [_row("s", "angle", 2.0, 1.0, 10.0),                      # no threshold: time 0.5
+            _row("s", "angle", 1.0, 0.3, 2.0, angle=20.0),          # time 1.0
+            _row("s", "angle", 0.9, None, None, angle=5.0),         # traces every ray
+            _row("s", "max_error", 2.0, 0.5, 10.0, max_error=8.0),   # ties no threshold
+            _row("s", "max_error", 1.25, 0.3, 2.0, max_error=2.0),   # ties 20 deg's errors
+            _row("s", "max_error", 1.0, 1e-9, 1e-9, max_error=0.25),
+            _row("s", "reflect", 4.0, 0.1, 0.5, max_error=1.0),
+            _row("t", "angle", 2.0, 1.0, 10.0),
+            _row("t", "max_error", 2.5, 0.5, 10.01, max_error=8.0),  # faster, p99 higher
+            _row("u", "max_error", 2.5, 0.5, 1.0, max_error=8.0)]    # no threshold points
+    s, t = dominance(rows)
+    assert [p["threshold"] for p in s["points"]] == ["no threshold", "20 deg", "5 deg"]
+    assert [p["by_curve"] for p in s["points"]] == [["8 deg"], ["2 deg", "0.25 deg"],
+                                                    ["0.25 deg"]]
+    assert [p["by_any"] for p in s["points"]] == [["8 deg", "1 deg reflect"],
+                                                  ["2 deg", "0.25 deg", "1 deg reflect"],
+                                                  ["0.25 deg"]]
+    assert s["curve_dominates"] and s["any_dominates"]
+    assert t["points"][0]["by_curve"] == [] and not t["curve_dominates"]
+    assert t["scene"] == "t" and t["points"][0]["time"] == 0.5
 
 
 def test_bad_options(capsys):
