@@ -221,6 +221,10 @@ def test_dominance_of_the_threshold_curve():
                                                   ["0.25 deg"]]
     assert s["curve_dominates"] and s["any_dominates"]
     assert t["points"][0]["by_curve"] == [] and not t["curve_dominates"]
+    assert t["curve_dominates_angles"]                 # it has no angle point left to beat
+    rows[1] = _row("s", "angle", 1.5, 0.3, 2.0, angle=20.0)     # now faster than 2 deg
+    s, _ = dominance(rows)
+    assert s["points"][1]["by_curve"] == [] and not s["curve_dominates_angles"]
     assert t["scene"] == "t" and t["points"][0]["time"] == 0.5
 
 
