@@ -85,7 +85,7 @@ def checked_params(obj) -> dict:
     it is off (and not checked) otherwise."""
     params = bake_params(obj)
     if not params["bake_for_cameras"]:
-        params["viewpoint_refine"] = 0
+        params["viewpoint_refine"] = params["finest_min_traced"] = 0
     try:
         backend.bake_params(params)
     except ValueError as exc:
@@ -108,7 +108,7 @@ def prepare_bake(context, obj, report: Report):
         else:
             report.warning("bake for scene cameras: the scene has no camera; baking everywhere")
             params["bake_for_cameras"] = False
-            params["viewpoint_refine"] = 0
+            params["viewpoint_refine"] = params["finest_min_traced"] = 0
     params["camera_positions"] = [[float(x) for x in np.asarray(c.matrix_world)[:3, 3]]
                                   for c in scene.cameras]
     meta = {"object": obj.name, "fingerprint": object_fingerprint(obj, depsgraph),

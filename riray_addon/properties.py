@@ -105,6 +105,13 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                                   update=_mark_custom,
                                   description="Camera bakes: extra viewpoint levels where the "
                                               "cameras' rays lack interpolants")
+    finest_min_traced: IntProperty(name="Finest level where traced", default=0, min=0,
+                                   max=1 << 30,
+                                   description="Camera bakes: the finest viewpoint level splits "
+                                               "only cells through which at least this many "
+                                               "camera rays would be traced (0: by the rule of "
+                                               "the other levels; 20 puts the costliest level "
+                                               "where tracing costs most)")
     # ---- render-time interpolation rules (core QueryOptions; no re-bake needed)
     policy: EnumProperty(
         name="Policy",
@@ -286,7 +293,8 @@ def unregister():
 
 # --------------------------------------------------------------------------- helpers
 # Keys of core.ritree.tree.BakeParams, then the add-on's own bake options.
-BAKE_KEYS = ("viewpoint_depth", "viewpoint_refine", "direction_depth", "min_direction_depth",
+BAKE_KEYS = ("viewpoint_depth", "viewpoint_refine", "finest_min_traced", "direction_depth",
+             "min_direction_depth",
              "tolerance_deg", "tolerance_dist", "search_steps", "quality", "bake_for_cameras",
              "use_frame_range")
 QUERY_KEYS = ("policy", "use_angle_threshold", "angle_deg", "use_distance_threshold", "distance",

@@ -67,6 +67,9 @@ def draw_bake_panel(layout, context) -> None:
     sub = col.row()
     sub.enabled = p.bake_for_cameras
     sub.prop(p, "viewpoint_refine")
+    sub = col.row()
+    sub.enabled = p.bake_for_cameras and p.viewpoint_refine > 0
+    sub.prop(p, "finest_min_traced")
     layout.prop(p, "cache_file", text="Cache")
 
     job = JOBS.get(obj.name)

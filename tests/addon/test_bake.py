@@ -135,10 +135,14 @@ def test_bad_settings_refused_before_the_bake(bl, tmp_path):
     with pytest.raises(RuntimeError, match="min_direction_depth"):
         bpy.ops.riray.bake(object=obj.name)
     assert time.time() - t0 < 10 and bl.operators.JOBS.get(obj.name) is last_job
+    # the finest-level rule reaches core's bake parameters on camera bakes
+    p.viewpoint_depth, p.min_direction_depth, p.finest_min_traced = 3, 1, 20
+    assert bl.backend.bake_params(bl.operators.checked_params(obj)).finest_min_traced == 20
     # refinement only applies to camera bakes: off, it is not held against the depth
     p.viewpoint_depth, p.min_direction_depth, p.bake_for_cameras = 9, 1, False
     params = bl.operators.checked_params(obj)
     assert params["viewpoint_refine"] == 0 and params["viewpoint_depth"] == 9
+    assert params["finest_min_traced"] == 0
 
 
 def _fresh(bl, obj):
