@@ -5,6 +5,7 @@ The add-on only ever calls the functions below:
 
     bake_tree(scene, params, progress, cancel, scheduler) -> RITree   (worker process)
     save_tree(tree, path, meta, cancel, progress) / read_header(path) / load_tree(path)
+        (a file that cannot be used raises TreeCacheError, here or from tree_object_fn)
     estimate_bake(scene, params) -> {"time_s", "bytes", "rays"}
     tree_object_fn(scene_tracer, tree, header, options) -> object_fn   (engine)
 
@@ -27,6 +28,7 @@ from ..core.render.exact import SceneTracer
 from ..core.ritree import bake as ritree_bake
 from ..core.ritree import cache as ritree_cache
 from ..core.ritree import tree as ritree
+from ..core.ritree.cache import TreeCacheError
 from ..core.ritree.query import OUTSIDE, TRACED, QueryOptions, TreeQuery
 from ..core.ritree.region import region_for_cameras
 
@@ -148,5 +150,5 @@ def tree_object_fn(st, tree, doc: dict, options: dict | None = None):
     return object_fn
 
 
-__all__ = ["BACKEND", "BakeCancelled", "bake_tree", "save_tree", "read_header", "load_tree",
-           "estimate_bake", "tree_object_fn"]
+__all__ = ["BACKEND", "BakeCancelled", "TreeCacheError", "bake_tree", "save_tree", "read_header",
+           "load_tree", "estimate_bake", "tree_object_fn"]

@@ -120,8 +120,11 @@ class RirayRenderEngine(bpy.types.RenderEngine):
         status = cache.tree_status(target, depsgraph, memo=False)
         object_fn, how = None, ""
         if status["state"] == "fresh":
-            tree, doc = backend.load_tree(status["path"])
-            object_fn = backend.tree_object_fn(st, tree, doc, query_options(target))
+            try:
+                tree, doc = backend.load_tree(status["path"])
+                object_fn = backend.tree_object_fn(st, tree, doc, query_options(target))
+            except backend.TreeCacheError as exc:      # damaged, or not this object's patches
+                how = f"the RI-Tree cache cannot be used ({exc}); re-bake"
         else:
             how = status["message"]
         if object_fn is None:

@@ -226,6 +226,29 @@ def test_still_through_baked_tree_matches_core(bl, tmp_path):
     assert np.array_equal(last["traced"].reshape(H, W) > 0, ref.masks["traced"])
 
 
+def test_damaged_cache_falls_back_to_tracing(bl, tmp_path):
+    """A cache whose header reads (so it looks fresh) but whose arrays do not decode: the
+    render warns, names the cache and traces the object exactly instead of failing; with
+    tracing without a tree switched off it stops with that message."""
+    bpy = bl.bpy
+    obj = build_scene(bl, tmp_path)
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "damaged.blend"))
+    assert bpy.ops.riray.bake(object=obj.name, viewpoint_depth=2, direction_depth=3,
+                              bake_for_cameras=True) == {"FINISHED"}
+    path = bl.cache.cache_path(obj)
+    data = bytearray(open(path, "rb").read())
+    data[-200] ^= 0xFF                        # inside the last array, after the header
+    open(path, "wb").write(bytes(data))
+    assert bl.cache.tree_status(obj, bpy.context.evaluated_depsgraph_get(),
+                                memo=False)["state"] == "fresh"
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    assert bl.engine.LAST_RENDER["stats"]["mode"] == "exact"
+    bpy.context.scene.riray.allow_tracing = False
+    with pytest.raises(RuntimeError, match="RI-Tree cache cannot be used .*re-bake"):
+        bpy.ops.render.render(write_still=True)
+    bpy.context.scene.riray.allow_tracing = True
+
+
 def test_max_error_and_path_identity_trace_through_baked_tree(bl, tmp_path):
     """The render-time tolerance (Max error), Path identity and the mirror rules reach core's
     query: with a tolerance far below any error the bake measured and mirror rays from the
