@@ -692,11 +692,19 @@ class _Baker:
         leaf = leaf[self.vpf.level[leaf] < self.Dmax]
         if len(leaf) == 0:
             return False
-        level = int(self.vpf.level[leaf].max()) + 1
-        kids = self.vpf.split(leaf).ravel()
-        vps = self._viewpoints(kids)
-        if len(vps):
-            self._bake_directions(self._add_trees(vps, self._slot_fn(region, level)))
+        # level by level, coarsest first: a new viewpoint's direction rectangles are those the
+        # rays through cells of its children's level need (the finest pass may split cells of
+        # several levels; a finer level's rectangles are narrower). A viewpoint two levels
+        # share is made by the coarser one, whose rectangles hold the finer one's.
+        levels = self.vpf.level[leaf].copy()
+        trees = []
+        for lv in np.unique(levels):
+            kids = self.vpf.split(leaf[levels == lv]).ravel()
+            vps = self._viewpoints(kids)
+            if len(vps):
+                trees.append(self._add_trees(vps, self._slot_fn(region, int(lv) + 1)))
+        if trees:
+            self._bake_directions(np.concatenate(trees))
         return True
 
     def _traced_cells(self, o, d, tmax) -> np.ndarray:

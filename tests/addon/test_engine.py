@@ -63,6 +63,16 @@ def build_scene(bl, tmp_path):
     return obj
 
 
+def baked_scene(bl, tmp_path, blend_name, depths=(3, 4)):
+    """build_scene, saved as ``blend_name``, its object's tree baked for the camera at
+    viewpoint / direction ``depths`` through the operator."""
+    obj = build_scene(bl, tmp_path)
+    bl.bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / blend_name))
+    assert bl.bpy.ops.riray.bake(object=obj.name, viewpoint_depth=depths[0],
+                                 direction_depth=depths[1], bake_for_cameras=True) == {"FINISHED"}
+    return obj
+
+
 def load_exr(bpy, path):
     img = bpy.data.images.load(str(path))
     w, h = img.size
@@ -204,10 +214,7 @@ def test_still_through_baked_tree_matches_core(bl, tmp_path):
     from riray.ritree.query import QueryOptions
 
     bpy = bl.bpy
-    obj = build_scene(bl, tmp_path)
-    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "tree_still.blend"))
-    assert bpy.ops.riray.bake(object=obj.name, viewpoint_depth=3, direction_depth=4,
-                              bake_for_cameras=True) == {"FINISHED"}
+    obj = baked_scene(bl, tmp_path, "tree_still.blend")
     path = bl.cache.cache_path(obj)
     # a coarse tree on a strongly curved mirror: the 20 deg pairwise angle rule would trace
     # nearly everything; the rules are render-time options (no re-bake)
@@ -231,10 +238,7 @@ def test_damaged_cache_falls_back_to_tracing(bl, tmp_path):
     render warns, names the cache and traces the object exactly instead of failing; with
     tracing without a tree switched off it stops with that message."""
     bpy = bl.bpy
-    obj = build_scene(bl, tmp_path)
-    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "damaged.blend"))
-    assert bpy.ops.riray.bake(object=obj.name, viewpoint_depth=2, direction_depth=3,
-                              bake_for_cameras=True) == {"FINISHED"}
+    obj = baked_scene(bl, tmp_path, "damaged.blend", depths=(2, 3))
     path = bl.cache.cache_path(obj)
     data = bytearray(open(path, "rb").read())
     data[-200] ^= 0xFF                        # inside the last array, after the header
@@ -257,10 +261,7 @@ def test_max_error_and_path_identity_trace_through_baked_tree(bl, tmp_path):
     with the tolerance off far fewer are traced; path identity only adds traced rays; none of
     it needs a re-bake."""
     bpy = bl.bpy
-    obj = build_scene(bl, tmp_path)
-    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "tree_tolerance.blend"))
-    assert bpy.ops.riray.bake(object=obj.name, viewpoint_depth=3, direction_depth=4,
-                              bake_for_cameras=True) == {"FINISHED"}
+    obj = baked_scene(bl, tmp_path, "tree_tolerance.blend")
     p = obj.riray
     p.use_angle_threshold = False
 
