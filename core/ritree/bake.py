@@ -796,9 +796,10 @@ def bake_shard(st, params: BakeParams, task: dict) -> dict:
 
 def refine_rule():
     """The query rule whose traced rays split viewpoint cells in a refinement pass: the paper's,
-    with its 20-degree angle threshold (not the render-time default, which may change)."""
+    with its 20-degree angle threshold, null rays traced (since stop 23; answered null before),
+    not the render-time default, which may change."""
     from .query import QueryOptions
-    return QueryOptions(angle_deg=REFINE_ANGLE_DEG, max_error_deg=None)
+    return QueryOptions(angle_deg=REFINE_ANGLE_DEG, max_error_deg=None, null_interp=False)
 
 
 def finest_rule():

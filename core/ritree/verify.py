@@ -27,6 +27,10 @@ TEST_POINTS = np.array([[0.5, 0.5], [0.5, 0.0], [0.0, 0.5], [1.0, 0.5], [0.5, 1.
 # the interpolation's, which the tolerance bounds; "newton"'s exact hits would measure ~0
 # where they apply. Recorded in the tree's meta as "viewpoint_mirror_rays".
 MEASURE_MIRROR_RAYS = "reflect"
+# Whether the measured test rays may be answered null (QueryOptions.null_interp), pinned here:
+# False since stop 23 (the render-time default: such rays are traced, so there is nothing to
+# measure); True before, when a null answer was measured (0 deg if the exact ray is trapped).
+MEASURE_NULL_INTERP = False
 # Edge midpoints are moved this far (cell-local) towards the centre, so that a point on an edge
 # two cells share is located in the cell it tests (the locator sends shared edges upwards).
 EDGE_NUDGE = 1e-6
@@ -86,7 +90,7 @@ def viewpoint_errors(tree, st, cameras):
         return err, flags
     ex = st.object_function(o, d, tmax)
     paper = QueryOptions(angle_deg=None, max_error_deg=None,     # the rules, no tolerance
-                         mirror_rays=MEASURE_MIRROR_RAYS)
+                         mirror_rays=MEASURE_MIRROR_RAYS, null_interp=MEASURE_NULL_INTERP)
     res, ans, _, _ = TreeQuery(tree, st, paper)(o, d, tmax)
     e = np.full(len(o), np.nan)
     interp = (ans >= FULL) & (ans <= EXTRAPOLATED_S)

@@ -312,6 +312,32 @@ def finest_bake(k, spy=None):
         return bake(st, params, region, workers=1)
 
 
+def test_viewpoint_errors_do_not_follow_the_render_time_null_rule(monkeypatch):
+    """Likewise for null rays (verify's pinned MEASURE_NULL_INTERP): on a glass sphere that
+    traps every ray (max_events 1) the cells' errors stay the same when QueryOptions'
+    default answers null rays, and that rule would measure them (0 deg) where the pinned one
+    traces the test rays and measures nothing."""
+    import dataclasses
+    from riray.ritree import query, verify
+    scene = build("glass_sphere")
+    scene.render.max_events = 1
+    st = SceneTracer(scene)
+    params = BakeParams(viewpoint_depth=2, direction_depth=3, viewpoint_refine=0)
+    cam = scene.camera("close")
+    tree = bake(st, params, region_for_cameras(st, params, [cam], SIZE, SIZE), workers=1)
+    cams = [(cam, SIZE, SIZE)]
+    err, flags = verify.viewpoint_errors(tree, st, cams)
+    fields = [f.name for f in dataclasses.fields(query.QueryOptions)]
+    defaults = list(query.QueryOptions.__init__.__defaults__)
+    defaults[fields.index("null_interp")] = True
+    monkeypatch.setattr(query.QueryOptions.__init__, "__defaults__", tuple(defaults))
+    again, flags2 = verify.viewpoint_errors(tree, st, cams)
+    assert np.array_equal(err, again, equal_nan=True) and np.array_equal(flags, flags2)
+    monkeypatch.setattr(verify, "MEASURE_NULL_INTERP", True)
+    other, _ = verify.viewpoint_errors(tree, st, cams)
+    assert np.sum(other == 0) > np.sum(err == 0)
+
+
 def test_finest_level_goes_where_rays_are_traced():
     """With finest_min_traced k, the pass that makes the finest viewpoint level splits exactly
     the cells through which at least k of the camera's rays are traced at the 2-degree
