@@ -3,8 +3,9 @@ bpy.ops.render.render (stills and animations), independent of any viewport.
 
 Per frame: export the scene from the render depsgraph (export.export_scene), build the core
 SceneTracer, then render rows of pixels in chunks with core's ``render_pixels``; the object's rays
-are answered by the baked RI-Tree (backend.tree_object_fn) when a fresh tree exists, else traced
-exactly (the user is told; scene.riray.allow_tracing = False turns that into an error).
+are answered by the baked RI-Tree (backend.tree_object_fn) when a fresh tree exists and loads,
+else traced exactly (the user is told; scene.riray.allow_tracing = False turns that into an
+error).
 Passes: Combined, "Traced" (1 where an object ray fell back to tracing) and "Angle Error"
 (degrees between the output ray used and the exact one; traces the object rays again).
 Progress / cancel through update_progress / test_break; every failure is reported with
@@ -123,8 +124,9 @@ class RirayRenderEngine(bpy.types.RenderEngine):
             try:
                 tree, doc = backend.load_tree(status["path"])
                 object_fn = backend.tree_object_fn(st, tree, doc, query_options(target))
-            except backend.TreeCacheError as exc:      # damaged, or not this object's patches
-                how = f"the RI-Tree cache cannot be used ({exc}); re-bake"
+            except (backend.TreeCacheError, OSError) as exc:   # damaged, gone, not this object's
+                how = f"the RI-Tree cache cannot be used ({exc})" + (
+                    "" if "re-bake" in str(exc) else "; re-bake")
         else:
             how = status["message"]
         if object_fn is None:

@@ -294,9 +294,8 @@ def unregister():
 # --------------------------------------------------------------------------- helpers
 # Keys of core.ritree.tree.BakeParams, then the add-on's own bake options.
 BAKE_KEYS = ("viewpoint_depth", "viewpoint_refine", "finest_min_traced", "direction_depth",
-             "min_direction_depth",
-             "tolerance_deg", "tolerance_dist", "search_steps", "quality", "bake_for_cameras",
-             "use_frame_range")
+             "min_direction_depth", "tolerance_deg", "tolerance_dist", "search_steps", "quality",
+             "bake_for_cameras", "use_frame_range")
 QUERY_KEYS = ("policy", "use_angle_threshold", "angle_deg", "use_distance_threshold", "distance",
               "use_extrapolation", "extrapolation", "use_null_interp", "use_max_error",
               "max_error_deg", "use_path_identity", "use_mirror_normal", "use_mirror_newton")

@@ -22,7 +22,9 @@ ERR_EQUAL_DEG = 1e-6
 
 
 def _time(r) -> float:
-    return 1.0 / max(float(r["object_speedup"]), 1e-9)
+    """Object-only time relative to exact (a speed-up of 0 would be no render: infinite)."""
+    s = float(r["object_speedup"])
+    return 1.0 / s if s > 0 else float("inf")
 
 
 def _err(r, key) -> float:
@@ -69,7 +71,8 @@ def dominance(rows) -> list:
         out.append({"scene": scene, "points": pts,
                     "curve_dominates": bool(curve) and all(p["by_curve"] for p in pts),
                     "any_dominates": bool(anyt) and all(p["by_any"] for p in pts),
-                    "curve_dominates_angles": bool(curve) and all(p["by_curve"] for p in angled)})
+                    "curve_dominates_angles": bool(curve) and bool(angled)
+                    and all(p["by_curve"] for p in angled)})
     return out
 
 

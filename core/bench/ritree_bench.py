@@ -148,9 +148,9 @@ class BenchConfig:
                 raise ValueError(f"views: unknown view {v!r}; views: {', '.join(VIEWS)}")
         if self.size < 2:
             raise ValueError(f"size: must be >= 2 (got {self.size})")
-        if min(self.repeats, self.sweep_repeats, self.pareto_repeats) < 1:
-            raise ValueError(f"repeats: must be >= 1 (got {self.repeats}, {self.sweep_repeats}, "
-                             f"{self.pareto_repeats})")
+        for name in ("repeats", "sweep_repeats", "pareto_repeats"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name}: must be >= 1 (got {getattr(self, name)})")
         self.bake_params(self.viewpoint_depth, self.direction_depth, self.tolerance)
         if self.deeper_tree is not None:
             if len(self.deeper_tree) not in (3, 4):

@@ -692,11 +692,12 @@ class _Baker:
         leaf = leaf[self.vpf.level[leaf] < self.Dmax]
         if len(leaf) == 0:
             return False
-        # level by level, coarsest first: a new viewpoint's direction rectangles are those the
-        # rays through cells of its children's level need (the finest pass may split cells of
-        # several levels; a finer level's rectangles are narrower). A viewpoint two levels
-        # share is made by the coarser one, whose rectangles hold the finer one's.
-        levels = self.vpf.level[leaf].copy()
+        # level by level: a new viewpoint's direction rectangles are those the rays through
+        # the new cells it is a corner of need, the rectangles of their level (the finest pass
+        # may split cells of several levels, and a finer level's rectangles are narrower; a
+        # later, finer cell that reuses the viewpoint needs no more: for one viewpoint a
+        # coarser level's rectangle holds a finer one's)
+        levels = self.vpf.level[leaf]
         trees = []
         for lv in np.unique(levels):
             kids = self.vpf.split(leaf[levels == lv]).ravel()

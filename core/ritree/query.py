@@ -305,7 +305,8 @@ class TreeQuery:
         self.table = tree.table
         tree.blend_vals, tree.vp_locator, tree.dir_locator
         tree.leaf_ok, tree.leaf_sampled, tree.cell_rect
-        # a bake that verified no viewpoint cell left no viewpoint-level errors to bound
+        # a bake that measured no viewpoint cell (a full tree, or one whose every test ray was
+        # traced) left no viewpoint-level errors to bound
         if (self.opt.max_error_deg is not None and self.opt.fallback_angle_deg is not None
                 and np.isnan(tree.vp_err).all()):
             self.opt = replace(self.opt, max_error_deg=None,

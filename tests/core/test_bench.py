@@ -221,7 +221,7 @@ def test_dominance_of_the_threshold_curve():
                                                   ["0.25 deg"]]
     assert s["curve_dominates"] and s["any_dominates"]
     assert t["points"][0]["by_curve"] == [] and not t["curve_dominates"]
-    assert t["curve_dominates_angles"]                 # it has no angle point left to beat
+    assert not t["curve_dominates_angles"]             # no angle point: nothing shown
     rows[1] = _row("s", "angle", 1.5, 0.3, 2.0, angle=20.0)     # now faster than 2 deg
     s, _ = dominance(rows)
     assert s["points"][1]["by_curve"] == [] and not s["curve_dominates_angles"]
@@ -232,6 +232,8 @@ def test_bad_options(capsys):
     assert main(["bench", "--size", "1", "--out", "unused"]) == 2
     assert "size" in capsys.readouterr().err
     assert main(["bench", "--quick", "--repeats", "0", "--out", "unused"]) == 2
+    assert main(["bench", "--quick", "--pareto-repeats", "0", "--out", "unused"]) == 2
+    assert "pareto_repeats: must be >= 1" in capsys.readouterr().err
 
 
 def test_passes_run_per_config_in_parallel(tmp_path):
