@@ -680,7 +680,7 @@ class _Baker:
         finest = int(self.vpf.level[self.vpf.child < 0].max()) + 1 >= self.Dmax
         if finest and self.params.finest_min_traced > 0:
             self.measure(region, tree)
-            leaf = self._traced_cells(o, d, tmax)
+            leaf = self._traced_cells(tree, o, d, tmax)
         else:
             _, ans, why, _ = TreeQuery(tree, self.st, refine_rule())(o, d, tmax)
             bad = (why == WHY_USABLE) | (why == WHY_THRESHOLD)
@@ -708,13 +708,12 @@ class _Baker:
             self._bake_directions(np.concatenate(trees))
         return True
 
-    def _traced_cells(self, o, d, tmax) -> np.ndarray:
+    def _traced_cells(self, tree, o, d, tmax) -> np.ndarray:
         """Viewpoint leaves through which at least ``finest_min_traced`` of the rays (o, d,
-        tmax) are traced under ``finest_rule``, on the tree as it is now (its viewpoint errors
-        just measured)."""
+        tmax) are traced under ``finest_rule``, on ``tree``, the tree as it is now (its
+        viewpoint errors just measured)."""
         from .locate import locate
         from .query import TRACED, TreeQuery
-        tree = self.tree()
         _, ans, _, _ = TreeQuery(tree, self.st, finest_rule())(o, d, tmax)
         tr = ans == TRACED
         loc, _ = locate(tree, o[tr], d[tr], tmax[tr])
@@ -726,9 +725,12 @@ class _Baker:
         kept for the tree; cells above the tolerance are flagged UNVERIFIED (a later pass that
         splits them measures their children). Returns the errors (NaN: not measured)."""
         cams = region.cameras if region is not None else None
-        err, flags = viewpoint_errors(tree or self.tree(), self.st, cams or [])
+        tree = tree or self.tree()
+        err, flags = viewpoint_errors(tree, self.st, cams or [])
         flags[err > self.params.viewpoint_tolerance_deg] |= UNVERIFIED
-        self.vp_err, self.vp_flags = err, flags
+        # kept for the bake and given to ``tree``, which a pass may query with them (its
+        # decoded samples and locators are not built twice)
+        self.vp_err, self.vp_flags = tree.vp_err, tree.vp_flags = err, flags
         return err
 
     def _slot_fn(self, region, level):

@@ -302,8 +302,8 @@ def finest_bake(k, spy=None):
     region = region_for_cameras(st, params, [cam], SIZE, SIZE)
     orig = bake_mod._Baker._traced_cells
 
-    def traced_cells(self, o, d, tmax):
-        cells = orig(self, o, d, tmax)
+    def traced_cells(self, tree, o, d, tmax):
+        cells = orig(self, tree, o, d, tmax)
         if spy is not None:
             spy(self, st, (o, d, tmax), cells)
         return cells
@@ -391,8 +391,8 @@ def test_finest_pass_over_several_levels_leaves_no_ray_outside():
     split_levels = []
     orig = bake_mod._Baker._traced_cells
 
-    def traced_cells(self, o, d, tmax):
-        cells = orig(self, o, d, tmax)
+    def traced_cells(self, tree, o, d, tmax):
+        cells = orig(self, tree, o, d, tmax)
         split_levels.extend(np.unique(self.vpf.level[cells]))
         return cells
     with pytest.MonkeyPatch.context() as mp:
