@@ -21,6 +21,7 @@ import bpy
 
 from . import backend
 from .export import object_fingerprint
+from .jobs import running_job
 from .report import ExportError
 
 CACHE_EXT = ".rit"
@@ -152,7 +153,6 @@ def _copy(src: str, dst: str) -> None:
 def _on_save_pre(filepath="", *_args):
     """Copy every "//" cache to where its setting points beside the file being saved, and
     point managed caches there (the saved file must hold the new settings)."""
-    from .operators import running_job
     old_blend, new_blend = bpy.data.filepath, os.path.abspath(filepath or bpy.data.filepath)
     _saving.clear()
     _saving.update(blend=old_blend, copies=[], settings={})
@@ -198,7 +198,7 @@ def _on_save_post(filepath="", *_args):
             if old not in in_use and os.path.isfile(old):
                 os.remove(old)
     _saving.clear()
-    _on_load()
+    forget()
 
 
 @bpy.app.handlers.persistent
@@ -216,12 +216,17 @@ def _on_depsgraph_update(scene, depsgraph=None):
     _update_counter[0] += 1
 
 
-@bpy.app.handlers.persistent
-def _on_load(*_args):
-    """After a .blend is loaded: forget memos; caches are found again from object.riray."""
+def forget() -> None:
+    """Forget the memoized fingerprints and cache headers: statuses are computed afresh."""
     _update_counter[0] += 1
     _fp_memo.clear()
     _header_memo.clear()
+
+
+@bpy.app.handlers.persistent
+def _on_load(*_args):
+    """After a .blend is loaded: caches are found again from object.riray."""
+    forget()
 
 
 def _handlers():

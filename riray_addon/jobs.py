@@ -183,6 +183,17 @@ class BakeJob:
             return ""
 
 
+JOBS: dict[str, BakeJob] = {}      # object name -> its current / last bake job
+
+
+def running_job(obj_name: str | None = None) -> BakeJob | None:
+    """The running bake of ``obj_name`` (of any object when None), or None."""
+    for name, job in JOBS.items():
+        if job.running and (obj_name is None or name == obj_name):
+            return job
+    return None
+
+
 def format_duration(s: float | None) -> str:
     if s is None or s != s:
         return "?"

@@ -33,6 +33,7 @@ import numpy as np
 
 from ..core.scene.model import Material, ObjectMaterial, Texture, World
 from . import compat
+from .node_helpers import image_pixels, output_node, source
 from .nodegraph import SurfaceContext, surface_graph, world_graph
 from .report import Report
 
@@ -47,38 +48,7 @@ def _rgb(c) -> tuple[float, float, float]:
     return (float(c[0]), float(c[1]), float(c[2]))
 
 
-def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-
-
 # --------------------------------------------------------------------------- node graph helpers
-def _output_node(tree):
-    outs = [n for n in tree.nodes if n.type in ("OUTPUT_MATERIAL", "OUTPUT_WORLD")]
-    for n in outs:
-        if getattr(n, "is_active_output", False) and getattr(n, "target", "ALL") in ("ALL", "CYCLES"):
-            return n
-    for n in outs:
-        if getattr(n, "target", "ALL") in ("ALL", "CYCLES"):
-            return n
-    return outs[0] if outs else None
-
-
-def _source(socket):
-    """(node, output socket) feeding an input socket, through reroutes; None if unlinked."""
-    seen = 0
-    while socket.is_linked and seen < 64:
-        link = socket.links[0]
-        if not link.is_valid or getattr(link, "is_muted", False):
-            return None
-        node = link.from_node
-        if node.type == "REROUTE":
-            socket = node.inputs[0]
-            seen += 1
-            continue
-        return node, link.from_socket
-    return None
-
-
 def _input(node, *names):
     """The first input socket matching one of the identifiers / names."""
     for nm in names:
@@ -117,7 +87,7 @@ def _coords(socket, ctx: _Ctx, default: str) -> tuple[str, np.ndarray]:
     """(coords, scale xyz) of a texture's Vector input: "uv" or "world", with a Mapping
     node's scale. ``default`` is what an unlinked input means for this node."""
     scale = np.ones(3)
-    src = _source(socket) if socket is not None else None
+    src = source(socket) if socket is not None else None
     if src is not None and src[0].type == "MAPPING":
         node = src[0]
         if node.vector_type not in ("POINT", "TEXTURE"):
@@ -131,7 +101,7 @@ def _coords(socket, ctx: _Ctx, default: str) -> tuple[str, np.ndarray]:
             ctx.warn("Mapping rotation ignored")
         if sc is not None and not sc.is_linked:
             scale = np.array(sc.default_value[:3], dtype=np.float64)
-        src = _source(node.inputs[0])
+        src = source(node.inputs[0])
         if src is None:
             return _coords_default(default, ctx), scale
     if src is None:
@@ -165,24 +135,6 @@ def _coords_default(default: str, ctx: _Ctx) -> str:
 
 
 # --------------------------------------------------------------------------- colour sources
-def image_pixels(img, linearize: bool = True) -> np.ndarray | None:
-    """(H, W, 3) float64, top row first, or None if the image has no pixels; 8-bit sRGB images
-    are linearized unless ``linearize`` is off (then the pixels are as stored)."""
-    w, h = img.size[0], img.size[1]
-    if w == 0 or h == 0:
-        return None
-    ch = img.channels
-    buf = np.empty(w * h * ch, dtype=np.float32)
-    img.pixels.foreach_get(buf)
-    px = buf.reshape(h, w, ch)[::-1, :, :3].astype(np.float64)
-    if px.shape[2] < 3:
-        px = np.repeat(px[:, :, :1], 3, axis=2)
-    cs = img.colorspace_settings.name
-    if linearize and not img.is_float and cs == "sRGB":
-        px = srgb_to_linear(px)
-    return np.ascontiguousarray(px)
-
-
 def _image_texture(node, ctx: _Ctx) -> Texture | None:
     img = node.image
     if img is None:
@@ -235,7 +187,7 @@ def _checker(node, ctx: _Ctx) -> Texture:
 def _gradient_value(socket, ctx: _Ctx):
     """A scalar input computing clamp((c[axis] - start) / (end - start)): returns
     (coords, axis, start, end) or None."""
-    src = _source(socket)
+    src = source(socket)
     if src is None:
         return None
     node, out = src
@@ -246,7 +198,7 @@ def _gradient_value(socket, ctx: _Ctx):
         if _value(node, "To Min") != 0.0 or _value(node, "To Max") != 1.0 or not node.clamp:
             ctx.warn("Map Range must map to [0, 1] with Clamp on; treated as such")
         start, end = _value(node, "From Min"), _value(node, "From Max")
-        src = _source(_input(node, "Value"))
+        src = source(_input(node, "Value"))
         if src is None:
             return None
         node, out = src
@@ -271,7 +223,7 @@ def _ramp_stops(node, ctx: _Ctx):
 
 def color_texture(socket, ctx: _Ctx) -> Texture:
     """The core Texture equal (or closest) to the colour at an input socket."""
-    src = _source(socket)
+    src = source(socket)
     if src is None:
         return Texture(kind="constant", color=_color_value(socket))
     node, out = src
@@ -339,10 +291,10 @@ def _const_value(socket, ctx: _Ctx, what: str) -> float:
 
 # --------------------------------------------------------------------------- the shader
 def _surface_shader(tree, ctx: _Ctx):
-    out = _output_node(tree) if tree is not None else None
+    out = output_node(tree) if tree is not None else None
     if out is None:
         return None
-    src = _source(out.inputs["Surface"])
+    src = source(out.inputs["Surface"])
     if src is None:
         return None
     node = src[0]
@@ -352,7 +304,7 @@ def _surface_shader(tree, ctx: _Ctx):
         t = float(fac.default_value)
         pick = 2 if (not fac.is_linked and t >= 0.5) else 1
         other = 1 if pick == 2 else 2
-        s = _source(node.inputs[pick]) or _source(node.inputs[other])
+        s = source(node.inputs[pick]) or source(node.inputs[other])
         ctx.warn(f"Mix Shader {node.name!r}: core simulates one shader; using input {pick}")
         if s is None:
             return None
@@ -548,8 +500,8 @@ def _fixed_world(world, report) -> World:
     ambient = float(world.riray.ambient)
     ctx = _Ctx(report, f"world {world.name!r}")
     tree = compat.shader_tree(world)
-    out = _output_node(tree) if tree is not None else None
-    src = _source(out.inputs["Surface"]) if out is not None else None
+    out = output_node(tree) if tree is not None else None
+    src = source(out.inputs["Surface"]) if out is not None else None
     if src is None:
         return World(kind="color", color=_rgb(world.color), ambient=ambient)
     node = src[0]
@@ -558,14 +510,14 @@ def _fixed_world(world, report) -> World:
         return World(kind="color", color=_rgb(world.color), ambient=ambient)
     strength = _const_value(_input(node, "Strength"), ctx, "strength")
     col = _input(node, "Color")
-    csrc = _source(col)
+    csrc = source(col)
     if csrc is None:
         return World(kind="color", color=_color_value(col), strength=strength, ambient=ambient)
     cnode = csrc[0]
     if cnode.type == "TEX_ENVIRONMENT":
         if cnode.projection != "EQUIRECTANGULAR":
             ctx.warn(f"environment projection {cnode.projection} not supported; equirectangular")
-        if _source(cnode.inputs[0]) is not None:
+        if source(cnode.inputs[0]) is not None:
             ctx.warn("environment texture vector input ignored")
         px = image_pixels(cnode.image) if cnode.image is not None else None
         if px is None:
@@ -574,10 +526,10 @@ def _fixed_world(world, report) -> World:
         return World(kind="image", image=px, path=bpy_path(cnode.image), strength=strength,
                      ambient=ambient)
     if cnode.type == "VALTORGB":
-        s = _source(_input(cnode, "Fac", "Factor"))
+        s = source(_input(cnode, "Fac", "Factor"))
         ok = (s is not None and s[0].type == "SEPXYZ" and s[1].name == "Z")
         if ok:
-            d = _source(s[0].inputs[0])
+            d = source(s[0].inputs[0])
             ok = d is None or (d[0].type == "TEX_COORD" and d[1].name in ("Generated", "Normal",
                                                                           "Object"))
         p0, p1, c0, c1 = _ramp_stops(cnode, ctx)

@@ -25,6 +25,7 @@ import numpy as np
 from ..core.scene.graph import (FLOAT, LUMA, NODE_TYPES, SHADER, GraphError, GraphNode, Link,
                                 ShaderGraph)
 from ..core.trace.nodes import hash_uint2
+from .node_helpers import image_pixels, output_node, source
 
 # Cycles' camera space looks down +Z (Blender's camera looks down -Z): world -> camera is
 # diag(1, 1, -1) * inverse(camera matrix).
@@ -32,7 +33,6 @@ CAMERA_FLIP = np.diag([1.0, 1.0, -1.0, 1.0])
 # Colour spaces whose 8-bit pixels are used as they are (sRGB ones are linearized after
 # interpolation, as Cycles does).
 LINEAR_SPACES = ("Non-Color", "Linear Rec.709", "Linear", "Raw")
-MAX_REROUTES = 256      # reroutes / muted nodes in a row before a chain counts as broken
 MAX_NESTING = 100       # nodes deep (Python recursion) before a tree counts as broken
 
 
@@ -67,30 +67,6 @@ class Unsupported(Exception):
 
 def _rgb(v) -> tuple:
     return tuple(float(x) for x in tuple(v)[:3])
-
-
-def source(socket):
-    """(node, output socket) feeding an input socket, through reroutes and muted nodes; None
-    when nothing (valid) is linked."""
-    for _ in range(MAX_REROUTES):
-        if not socket.is_linked:
-            return None
-        link = socket.links[0]
-        if not link.is_valid or getattr(link, "is_muted", False) or \
-                not link.from_socket.enabled:
-            return None
-        node, out = link.from_node, link.from_socket
-        if node.type == "REROUTE":
-            socket = node.inputs[0]
-            continue
-        if node.mute:
-            passed = [li.from_socket for li in node.internal_links if li.to_socket == out]
-            if not passed:
-                return None
-            socket = passed[0]
-            continue
-        return node, out
-    return None
 
 
 def _enum(value: str) -> str:
@@ -261,7 +237,6 @@ def _noise(b, node):
 
 
 def _image_props(b, node) -> dict:
-    from .materials import image_pixels
     img = node.image
     if img is None:
         raise Unsupported("no image")
@@ -516,8 +491,7 @@ def _as_diffuse(b, node):
 
 
 def _output_surface(tree):
-    from .materials import _output_node
-    out = _output_node(tree) if tree is not None else None
+    out = output_node(tree) if tree is not None else None
     return None if out is None else out.inputs["Surface"]
 
 

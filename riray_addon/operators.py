@@ -20,11 +20,10 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 from ..core.scene.io import save_scene
 from . import backend, cache, compat
 from .export import export_camera, export_scene, object_fingerprint
-from .jobs import BakeJob, format_bytes, format_duration
+from .jobs import JOBS, BakeJob, format_bytes, format_duration, running_job
 from .properties import BAKE_KEYS, QUERY_KEYS, bake_params, scheduler_address
 from .report import ExportError, Report
 
-JOBS: dict[str, BakeJob] = {}      # object name -> its current / last bake job
 TIMER_S = 0.1
 
 
@@ -41,13 +40,6 @@ def target_object(context, name: str = ""):
     if obj is None:
         raise ExportError("no active object: select the NURBS surface to bake")
     return obj
-
-
-def running_job(obj_name: str | None = None) -> BakeJob | None:
-    for name, job in JOBS.items():
-        if job.running and (obj_name is None or name == obj_name):
-            return job
-    return None
 
 
 def camera_views(context, params: dict, report: Report) -> list:
@@ -158,7 +150,7 @@ def finish_job(job: BakeJob, report_fn=None) -> None:
     print(f"riray: {msg}")
     if report_fn is not None:
         report_fn({msg_level}, msg)
-    cache._on_load()          # forget memoized headers / fingerprints
+    cache.forget()          # forget memoized headers / fingerprints
     _redraw()
 
 
@@ -333,7 +325,7 @@ class RIRAY_OT_bake_clear(bpy.types.Operator):
         obj.riray.baked_cache = ""
         obj.riray.baked_fingerprint = ""
         obj.riray.baked_info = ""
-        cache._on_load()
+        cache.forget()
         return {"FINISHED"}
 
 

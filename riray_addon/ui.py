@@ -11,7 +11,8 @@ import bpy
 from . import cache
 from .engine import ENGINE_ID
 from .jobs import format_bytes, format_duration
-from .operators import JOBS, estimate_key
+from .jobs import JOBS
+from .operators import estimate_key
 from .report import ExportError
 
 TARGET_TYPES = {"SURFACE", "MESH", "CURVE", "META"}

@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import sys
 import time
 from pathlib import Path
 
@@ -116,7 +115,3 @@ def run(scenes=SAMPLES, size: int = 300, camera: str = "close", workers: int | N
         out.write_text(json.dumps(result, indent=2) + "\n")
     return result
 
-
-if __name__ == "__main__":   # python -m riray.bench.exact_bench [options] == riray bench-exact
-    from ..cli import main
-    sys.exit(main(["bench-exact", *sys.argv[1:]]))

@@ -874,7 +874,3 @@ def config_from_args(quick=False, **overrides) -> BenchConfig:
     return replace(base, **{k: (tuple(v) if isinstance(v, list) else v)
                             for k, v in overrides.items() if v is not None})
 
-
-if __name__ == "__main__":   # python -m riray.bench.ritree_bench [options] == riray bench
-    from ..cli import main
-    sys.exit(main(["bench", *sys.argv[1:]]))

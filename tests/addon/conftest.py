@@ -82,7 +82,7 @@ def blender(extension_zip, tmp_path_factory):
     ns = SimpleNamespace(bpy=bpy, addon=addon, reset=reset, resources=resources,
                          zip=extension_zip.path, **mods)
     yield ns
-    for job in list(mods["operators"].JOBS.values()):
+    for job in list(mods["jobs"].JOBS.values()):
         if job.running:
             job.cancel()
             job.wait(timeout=10)

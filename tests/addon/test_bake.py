@@ -44,7 +44,7 @@ def test_bake_cancel_reload_stale(bl, tmp_path):
     # -- cancel a long bake: the previous cache survives untouched
     res = bpy.ops.riray.bake(object=obj.name, viewpoint_depth=6, direction_depth=6, wait=False)
     assert res == {"FINISHED"}
-    job = ops.JOBS[obj.name]
+    job = bl.jobs.JOBS[obj.name]
     assert job.running
     t0 = time.time()
     while job.poll() == "running" and job.fraction <= 0.02 and time.time() - t0 < 60:
@@ -108,7 +108,7 @@ def test_estimate_and_failed_bake(bl, tmp_path):
             bpy.ops.riray.bake(object=obj.name, viewpoint_depth=1, direction_depth=1)
     finally:
         del os.environ["RIRAY_PYTHON"]
-    assert bl.operators.JOBS[obj.name].state == "failed"
+    assert bl.jobs.JOBS[obj.name].state == "failed"
     assert not os.path.exists(bl.cache.cache_path(obj))
 
 
@@ -117,12 +117,12 @@ def test_bad_settings_refused_before_the_bake(bl, tmp_path):
     once with a message naming the problem: no worker is started."""
     bpy = bl.bpy
     obj, _ = _setup(bl, tmp_path)
-    last_job = bl.operators.JOBS.get(obj.name)
+    last_job = bl.jobs.JOBS.get(obj.name)
     (tmp_path / "afile").write_text("not a folder")
     obj.riray.cache_file = str(tmp_path / "afile" / "sub" / "x.rit")
     with pytest.raises(RuntimeError, match="afile is a file, not a folder"):
         bpy.ops.riray.bake(object=obj.name, viewpoint_depth=1, direction_depth=1)
-    assert bl.operators.JOBS.get(obj.name) is last_job
+    assert bl.jobs.JOBS.get(obj.name) is last_job
     obj.riray.cache_file = ""
     p = obj.riray
     p.bake_for_cameras, p.viewpoint_depth, p.viewpoint_refine = True, 9, 2   # both in range
@@ -134,7 +134,7 @@ def test_bad_settings_refused_before_the_bake(bl, tmp_path):
     p.viewpoint_depth, p.min_direction_depth, p.direction_depth = 2, 5, 3
     with pytest.raises(RuntimeError, match="min_direction_depth"):
         bpy.ops.riray.bake(object=obj.name)
-    assert time.time() - t0 < 10 and bl.operators.JOBS.get(obj.name) is last_job
+    assert time.time() - t0 < 10 and bl.jobs.JOBS.get(obj.name) is last_job
     # the finest-level rule reaches core's bake parameters on camera bakes
     p.viewpoint_depth, p.min_direction_depth, p.finest_min_traced = 3, 1, 20
     assert bl.backend.bake_params(bl.operators.checked_params(obj)).finest_min_traced == 20

@@ -50,7 +50,7 @@ def test_bake_on_a_cluster_and_cancel_it(bl, tmp_path, monkeypatch):
         res = bpy.ops.riray.bake(object=obj.name, viewpoint_depth=5, direction_depth=6,
                                  wait=False)
         assert res == {"FINISHED"}
-        job = ops.JOBS[obj.name]
+        job = bl.jobs.JOBS[obj.name]
         assert _until(lambda: job.poll() != "running" or job.message.startswith("shards "), 120)
         assert job.running, job.error
         cluster_procs = psutil.Process(job.proc.pid).children(recursive=True)
@@ -69,7 +69,7 @@ def test_bake_on_a_cluster_and_cancel_it(bl, tmp_path, monkeypatch):
         with pytest.raises(RuntimeError, match=r"Dask scheduler tcp://127\.0\.0\.1:9: cannot "
                                                r"connect"):
             bpy.ops.riray.bake(object=obj.name, viewpoint_depth=1, direction_depth=2)
-        assert "\n" not in ops.JOBS[obj.name].error
+        assert "\n" not in bl.jobs.JOBS[obj.name].error
         st = os.stat(path)
         assert (st.st_mtime_ns, st.st_size) == (stat0.st_mtime_ns, stat0.st_size)
     finally:

@@ -61,7 +61,7 @@ def test_bake_panel_states(bl, tmp_path):
     assert "Estimate: " in _texts(log) and "Estimate: -" not in _texts(log)
     # baking: progress bar with ETA and a cancel button, here and in the status bar
     bpy.ops.riray.bake(viewpoint_depth=6, direction_depth=6, wait=False)
-    job = bl.operators.JOBS[obj.name]
+    job = bl.jobs.JOBS[obj.name]
     t0 = time.time()
     while job.poll() == "running" and job.fraction < 0.02 and time.time() - t0 < 60:
         time.sleep(0.05)
