@@ -26,8 +26,8 @@ $(BPY_STAMP): $(STAMP)
 
 venv-bpy: $(BPY_STAMP)
 
-# dist/riray-<version>.zip: riray_addon/ + core/ staged under build/extension, built and
-# validated by Blender's own extension tool (docs/blender.md).
+# dist/riray-<version>.zip: riray_addon/ + core/ staged in a temporary folder (the checkout is
+# left as it was), built and validated by Blender's own extension tool (docs/blender.md).
 extension: $(BPY_STAMP)
 	$(BIN)/python riray_addon/build_extension.py --out dist --validate
 

@@ -4,9 +4,10 @@
 
 Layout choice: the repository root is not itself a Python package (a root ``__init__.py`` would
 turn the whole checkout - tests, docs, sample scenes - into one), so the extension is *staged*:
-``build/extension/`` receives ``blender_manifest.toml``, ``riray_addon/``, ``core/`` and a
-generated two-line ``__init__.py`` (``from .riray_addon import register, unregister``); Blender's
-own builder then zips that folder, honouring the manifest's ``[build] paths_exclude_pattern``.
+a temporary folder (outside the checkout, removed after the build; the build writes nothing but
+the zip) receives ``blender_manifest.toml``, ``riray_addon/``, ``core/`` and a generated
+two-line ``__init__.py`` (``from .riray_addon import register, unregister``); Blender's own
+builder then zips that folder, honouring the manifest's ``[build] paths_exclude_pattern``.
 Inside Blender the package is ``bl_ext.<repo>.riray``; ``riray_addon`` reaches the engine as
 ``..core`` (relative imports only).
 
@@ -23,6 +24,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -94,16 +96,26 @@ def _run(cmd: list[str]) -> None:
 
 def build(out_dir: Path, blender_ext: Path | None, validate: bool = False,
           root: Path = ROOT, stage_dir: Path | None = None) -> Path:
-    """Stage, build with Blender's builder, optionally validate; returns the zip path."""
-    stage_dir = stage_dir or root / "build" / "extension"
+    """Stage, build with Blender's builder, optionally validate; returns the zip path.
+
+    Without ``stage_dir`` the staging folder is a temporary one, removed afterwards, so the
+    source tree is left as it was (only ``out_dir`` receives the zip)."""
+    if blender_ext is None or not blender_ext.is_file():
+        raise SystemExit("Blender's extension builder (blender_ext.py) was not found: install the "
+                         "bpy wheel (`make venv-bpy`) or pass --blender-ext / set $BLENDER_EXT")
+    if stage_dir is None:
+        with tempfile.TemporaryDirectory(prefix="riray_extension_") as tmp:
+            return _build(out_dir, blender_ext, validate, root, Path(tmp) / "extension")
+    return _build(out_dir, blender_ext, validate, root, stage_dir)
+
+
+def _build(out_dir: Path, blender_ext: Path, validate: bool, root: Path,
+           stage_dir: Path) -> Path:
     stage(stage_dir, root)
     out_dir.mkdir(parents=True, exist_ok=True)
     zip_path = out_dir / f"riray-{manifest_version(root)}.zip"
     if zip_path.exists():
         zip_path.unlink()
-    if blender_ext is None or not blender_ext.is_file():
-        raise SystemExit("Blender's extension builder (blender_ext.py) was not found: install the "
-                         "bpy wheel (`make venv-bpy`) or pass --blender-ext / set $BLENDER_EXT")
     tags = valid_tags_file(blender_ext)
     tag_args = [f"--valid-tags={tags}"] if tags else []
     _run([sys.executable, str(blender_ext), "build", "--source-dir", str(stage_dir),

@@ -1,5 +1,5 @@
-"""Does the baked-error tolerance dominate the paper's angle threshold? (issue #11's Pareto
-target, judged from the bench's sweep rows, measuring nothing).
+"""Does the baked-error tolerance dominate the paper's angle threshold? (a Pareto judgement
+from the bench's sweep rows, measuring nothing).
 
 Per scene, every point of the angle-threshold curve (sweep "angle", its no-threshold point
 included) is compared with the points of the tolerance curve (sweep "max_error": ``--max-error``

@@ -23,12 +23,12 @@ from .tree import BOUNDARY, PATH_CHANGE
 TEST_POINTS = np.array([[0.5, 0.5], [0.5, 0.0], [0.0, 0.5], [1.0, 0.5], [0.5, 1.0]])
 # How the measured test rays answer mirror rays (QueryOptions.mirror_rays), pinned here, not
 # taken from the render-time default: "reflect", the interpolated hit and normal (the default
-# from stop 15 to 16; earlier trees measured the paper's blended rays). The measured errors are
-# the interpolation's, which the tolerance bounds; "newton"'s exact hits would measure ~0
-# where they apply. Recorded in the tree's meta as "viewpoint_mirror_rays".
+# from 65bd543 to 0d51411, 2026-12-02/03; earlier trees measured the paper's blended rays). The
+# measured errors are the interpolation's, which the tolerance bounds; "newton"'s exact hits
+# would measure ~0 where they apply. Recorded in the tree's meta as "viewpoint_mirror_rays".
 MEASURE_MIRROR_RAYS = "reflect"
 # Whether the measured test rays may be answered null (QueryOptions.null_interp), pinned here:
-# False since stop 23 (the render-time default: such rays are traced, so there is nothing to
+# False since 527fbe9, 2026-12-04 (the render-time default: such rays are traced, so nothing to
 # measure); True before, when a null answer was measured (0 deg if the exact ray is trapped).
 MEASURE_NULL_INTERP = False
 # Edge midpoints are moved this far (cell-local) towards the centre, so that a point on an edge
