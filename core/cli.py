@@ -5,14 +5,17 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
 from . import __version__
+from .atomic import atomic_write, command_output
 
 
 _BAR = {"open": False}    # a progress bar is mid-line on stderr (an error message starts anew)
@@ -169,10 +172,23 @@ def _bake(scene, args, params, out, st, cluster=None):
         names = args.cameras.split(",") if args.cameras else [c.name for c in scene.cameras]
         cams = [scene.camera(n) for n in names]
         region = region_for_cameras(st, params, cams, scene.render.width, scene.render.height)
+        for name in region.unseen:
+            _warn(args.cmd, f"camera {name!r} does not see the object {scene.object.name!r}; "
+                  "the tree is baked for the other cameras")
     bar = _progress("bake")
     tree = bake(st, params, region, progress=lambda f, msg: bar(f), workers=args.workers,
                 cluster=cluster)
     ritree.save(tree, out, progress=_progress("save (compressing)"))
+    return tree
+
+
+def _load_tree(args, scene):
+    """The RI-Tree of ``args.tree`` for ``scene``; a tree without samples (its cameras saw
+    nothing of the object) is used with a warning: every ray it meets is traced."""
+    from .ritree import tree as ritree
+    tree = ritree.load(args.tree, scene)
+    if len(tree.samples) == 0:
+        _warn(args.cmd, f"{args.tree}: the RI-Tree holds no samples; every ray is traced exactly")
     return tree
 
 
@@ -195,7 +211,8 @@ def cmd_bake(args):
     try:
         scene = _load(args.scene)
         st = SceneTracer(scene)
-        tree = _bake(scene, args, params, args.out, st, cluster)
+        with command_output():
+            tree = _bake(scene, args, params, args.out, st, cluster)
     finally:
         if cluster is not None:
             cluster.close()
@@ -217,18 +234,19 @@ def cmd_render(args):
     scene = _load(args.scene)
     if args.tree:
         from .render.interpolated import render_tree, save_tree_render
-        from .ritree import tree as ritree
-        tree = ritree.load(args.tree, scene)
+        tree = _load_tree(args, scene)
         res = render_tree(scene, tree, camera=args.camera, width=args.width, height=args.height,
                           options=options, reference=not args.no_reference,
                           workers=args.workers,
                           progress=None if args.quiet else _progress("render"))
-        paths = save_tree_render(res, args.out)
+        with command_output():
+            paths = save_tree_render(res, args.out)
         print(json.dumps({"written": [str(p) for p in paths], **res.stats["summary"]}, indent=2))
         return 0
     res = render_exact(scene, camera=args.camera, width=args.width, height=args.height,
                        workers=args.workers, progress=None if args.quiet else _progress("render"))
-    paths = save_render(res, args.out)
+    with command_output():
+        paths = save_render(res, args.out)
     print(json.dumps({"written": [str(p) for p in paths], **res.stats["summary"]}, indent=2))
     return 0
 
@@ -290,7 +308,6 @@ def _load_rays(path):
 
 def cmd_trace_rays(args):
     from .render.exact import SceneTracer
-    from .render.image import atomic_write
     if args.inside and args.tree:
         raise ValueError("--inside cannot be combined with --tree (the RI-Tree answers rays "
                          "that enter the object from outside)")
@@ -302,9 +319,8 @@ def cmd_trace_rays(args):
     st = SceneTracer(scene)
     extra = {}
     if args.tree:
-        from .ritree import tree as ritree
         from .ritree.query import TreeQuery
-        tq = TreeQuery(ritree.load(args.tree, scene), st, options)
+        tq = TreeQuery(_load_tree(args, scene), st, options)
         out, answers, why, _ = tq(o, u)
         extra = {"answer": answers, "traced_because": why}
     else:
@@ -321,7 +337,8 @@ def cmd_trace_rays(args):
                            None if args.quiet else _progress("trace"))
         out = ObjectRays(**{k: np.concatenate([p.__dict__[k] for p in parts])
                             for k in parts[0].__dict__}) if parts else f(0, 0)
-    atomic_write(out_path, lambda f: np.savez_compressed(f, **out.__dict__, **extra))
+    with command_output():
+        atomic_write(out_path, lambda f: np.savez_compressed(f, **out.__dict__, **extra))
     print(f"{args.out}: {len(o)} rays, {int(out.hit.sum())} hit the object, "
           f"{int(out.null.sum())} null")
     return 0
@@ -329,7 +346,12 @@ def cmd_trace_rays(args):
 
 def cmd_validate(args):
     from .scene.io import load_scene
+    from .trace.scene_tracer import SceneTracer, check_camera_outside
     scene = load_scene(args.scene)
+    if scene.cameras:
+        st = SceneTracer(scene)
+        for cam in scene.cameras:
+            check_camera_outside(st, cam)
     print(f"{args.scene}: ok — {len(scene.object.patches)} patches, {len(scene.meshes)} meshes, "
           f"{len(scene.lights)} lights, cameras {[c.name for c in scene.cameras]}")
     return 0
@@ -562,8 +584,17 @@ def _error(cmd, msg):
     print(f"riray {cmd}: {msg}", file=sys.stderr)
 
 
+def _warn(cmd, msg):
+    _error(cmd, f"warning: {msg}")
+
+
 def main(argv=None) -> int:
+    """The program. Once a command's output files are being renamed into place it ignores
+    Ctrl-C until the process ends (atomic.command_output), and so does an interrupted command
+    while it reports; called in-process (``argv`` given) the SIGINT handler is put back on
+    return."""
     args = build_parser().parse_args(argv)
+    sigint = signal.getsignal(signal.SIGINT)
     try:
         _check_options(args)
         return args.fn(args)
@@ -574,8 +605,14 @@ def main(argv=None) -> int:
         _error(args.cmd, f"error: out of memory ({str(e) or 'the input is too large'})")
         return 2
     except KeyboardInterrupt:
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)      # a second Ctrl-C: one line still
         _error(args.cmd, "interrupted")
         return 130
+    finally:
+        if argv is not None and sigint is not None \
+                and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, sigint)
 
 
 if __name__ == "__main__":

@@ -28,6 +28,9 @@ import importlib.util
 import json
 import logging
 import math
+import os
+import signal
+import socket
 import sys
 import time
 import uuid
@@ -47,6 +50,11 @@ SHARDS_PER_WORKER = 8    # at least this many shards per worker thread where the
 MIN_SHARD_TREES = 16     # fewer trees per shard trace in batches too small to vectorize well
 POLL_S = 0.1             # seconds between checks of cancel() and the connection while waiting
 WORKER_WAIT_S = 30.0     # seconds to wait for a first worker at a scheduler without any
+LOCAL_WORKERS_PER_CORE = 4   # local:N takes at most this many worker processes per CPU core
+                             # (each is a Python process of ~100 MiB before any shard)
+PROBE_S = 2.0            # seconds a TCP connect to the scheduler's address may take before the
+                         # address is handed to Dask anyway (a slow but live scheduler); a
+                         # refused connection or an unknown host fails at once
 # Dask's nannies start workers with MALLOC_TRIM_THRESHOLD_=65536, which fixes glibc's mmap
 # threshold at 128 KiB: every large numpy temporary is then mapped and unmapped, and a shard
 # spends ~30 % of its CPU in the kernel (measured: 4/5 glass_sphere, 40 of 132 s). local:N unsets
@@ -85,19 +93,17 @@ def connect(spec: str, timeout: float | None = None) -> "Cluster":
         tornado_log.addFilter(_interrupted_wait)
     local = None
     if spec.startswith("local:"):
-        n = spec[len("local:"):]
-        if not n.isdigit() or int(n) < 1:
-            raise ClusterError(f"--scheduler {spec}: expected local:N with N >= 1 worker processes")
-        with dask.config.set(WORKER_CONFIG):
-            local = distributed.LocalCluster(n_workers=int(n), threads_per_worker=1,
-                                             processes=True, dashboard_address=":0",
-                                             silence_logs=logging.ERROR)
+        local = _local_cluster(spec, distributed)
         spec = local.scheduler_address
+    else:
+        _probe(spec)
     try:
         client = distributed.Client(spec, timeout=timeout)
-    except Exception as e:            # noqa: BLE001 - any failure to connect is the address's
+    except BaseException as e:        # any failure to connect is the address's; Ctrl-C too
         if local is not None:
-            local.close()
+            _quiet_close(local)
+        if not isinstance(e, Exception):
+            raise
         raise ClusterError(f"Dask scheduler {spec}: cannot connect ({_line(e)})") from None
     cluster = Cluster(client, local)
     try:
@@ -107,6 +113,90 @@ def connect(spec: str, timeout: float | None = None) -> "Cluster":
         raise ClusterError(f"Dask scheduler {spec}: no worker joined within {WORKER_WAIT_S:g} s "
                            "(start some with: dask worker ADDRESS)") from None
     return cluster
+
+
+def _local_cluster(spec: str, distributed):
+    """The LocalCluster of ``local:N``. Its worker processes never see a Ctrl-C: the terminal
+    sends SIGINT to the whole process group, and a worker interrupted mid-task prints its own
+    tracebacks. The cluster's event-loop thread is started with SIGINT blocked, and every
+    thread it starts (the ones that spawn the workers, also those a nanny restarts) and every
+    worker process inherits that mask; this process handles the Ctrl-C and closes the cluster.
+    A Ctrl-C during the start-up is held back until the cluster exists, then raised after
+    closing it. multiprocessing's resource tracker is started first: starting it unblocks
+    SIGINT in the thread that does (resource_tracker.ensure_running), which would otherwise be
+    the event-loop thread."""
+    import dask
+    from multiprocessing import resource_tracker
+    n = spec[len("local:"):]
+    if not n.isdigit() or int(n) < 1:
+        raise ClusterError(f"--scheduler {spec}: expected local:N with N >= 1 worker processes")
+    cap = max_local_workers()
+    if int(n) > cap:
+        raise ClusterError(f"--scheduler {spec}: at most {cap} worker processes on this machine "
+                           f"(riray.cluster.LOCAL_WORKERS_PER_CORE: {LOCAL_WORKERS_PER_CORE} per CPU core)")
+    block = hasattr(signal, "pthread_sigmask")       # POSIX
+    if block:
+        resource_tracker.ensure_running()
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT}) if block else None
+    try:
+        with dask.config.set(WORKER_CONFIG):
+            local = distributed.LocalCluster(n_workers=int(n), threads_per_worker=1,
+                                             processes=True, dashboard_address=":0",
+                                             silence_logs=logging.ERROR)
+    except BaseException:
+        if block:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        raise
+    try:
+        if block:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)   # raises a Ctrl-C held back
+    except BaseException:
+        _quiet_close(local)
+        raise
+    return local
+
+
+def max_local_workers() -> int:
+    """The most worker processes ``local:N`` starts: LOCAL_WORKERS_PER_CORE per CPU core."""
+    return LOCAL_WORKERS_PER_CORE * max(1, os.cpu_count() or 1)
+
+
+def _probe(spec: str) -> None:
+    """ClusterError at once when nothing listens at a TCP (or TLS) scheduler address: the
+    connection is refused or the host does not resolve. An address that does not answer within
+    PROBE_S seconds is left to Dask's own connect timeout; other protocols are not probed."""
+    from distributed.comm import parse_address
+    from distributed.comm.addressing import parse_host_port
+    try:
+        scheme, loc = parse_address(spec)
+        if scheme not in ("tcp", "tls"):
+            return
+        host, port = parse_host_port(loc, 8786)
+    except ValueError as e:
+        raise ClusterError(f"Dask scheduler {spec}: not an address ({_line(e)})") from None
+    try:
+        socket.create_connection((host, port), timeout=PROBE_S).close()
+    except (ConnectionRefusedError, socket.gaierror) as e:
+        why = e.strerror or str(e)
+        raise ClusterError(f"Dask scheduler {spec}: cannot connect ({why})") from None
+    except OSError:                   # a time-out or an unreachable network: Dask decides
+        pass
+
+
+def _quiet_close(obj) -> None:
+    """``obj.close()`` with Dask's shutdown chatter (connection errors of workers and comms
+    that go away) kept off the terminal: the caller reports in one line."""
+    loggers = [logging.getLogger(n) for n in ("distributed", "tornado", "asyncio")]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.CRITICAL + 1)
+    try:
+        obj.close()
+    except Exception:                 # noqa: BLE001 - closing what already went away
+        pass
+    finally:
+        for lg, level in zip(loggers, levels):
+            lg.setLevel(level)
 
 
 def _line(e: BaseException) -> str:
@@ -318,10 +408,12 @@ class Cluster:
             raise ClusterError(f"shard {i + 1} of {n} failed on the cluster: {why}") from None
 
     def close(self) -> None:
+        """Drop the scene, then close the client, then the LocalCluster (its workers first),
+        with Dask's shutdown logging kept off the terminal."""
         self._drop_scene()
-        self.client.close()
+        _quiet_close(self.client)
         if self.local is not None:
-            self.local.close()
+            _quiet_close(self.local)
 
     def __enter__(self):
         return self

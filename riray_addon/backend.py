@@ -5,9 +5,9 @@ The add-on only ever calls the functions below:
 
     bake_tree(scene, params, progress, cancel, scheduler) -> RITree   (worker process)
     save_tree(tree, path, meta, cancel, progress) / read_header(path) / load_tree(path)
-        (a file that cannot be used raises TreeCacheError, here or from tree_object_fn)
+        (a file that cannot be used raises TreeCacheError)
     estimate_bake(scene, params) -> {"time_s", "bytes", "rays"}
-    tree_object_fn(scene_tracer, tree, header, options) -> object_fn   (engine)
+    tree_answerer(scene_tracer, tree, options) -> TreeAnswerer   (engine; core/render/frame.py)
 
 ``scene`` is a core Scene (the object, the environment and, for camera-driven bakes, one camera
 per camera and frame); ``params`` holds riray_addon.properties.BAKE_KEYS plus "width" and
@@ -24,12 +24,13 @@ from dataclasses import fields
 
 import numpy as np
 
-from ..core.render.exact import SceneTracer
+from ..core.trace.scene_tracer import SceneTracer
 from ..core.ritree import bake as ritree_bake
 from ..core.ritree import cache as ritree_cache
 from ..core.ritree import tree as ritree
 from ..core.ritree.cache import TreeCacheError
-from ..core.ritree.query import OUTSIDE, TRACED, QueryOptions, TreeQuery
+from ..core.render.frame import TreeAnswerer
+from ..core.ritree.query import QueryOptions, TreeQuery
 from ..core.ritree.region import region_for_cameras
 
 BACKEND = "ritree"
@@ -105,7 +106,7 @@ def read_header(path: str) -> dict | None:
 
 
 def load_tree(path: str):
-    """(RITree, header document); raw arrays stay memory-mapped, compressed ones are decoded."""
+    """(RITree, header document): the file read whole into memory and checked."""
     tree = ritree.load(path)
     return tree, {"backend": BACKEND, "tree": tree.header(), "meta": tree.meta.get("addon", {})}
 
@@ -138,17 +139,11 @@ def _unit(v):
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
-def tree_object_fn(st, tree, doc: dict, options: dict | None = None):
-    """``object_fn(origins, dirs, tmax) -> (ObjectRays, extra)`` answering object rays through
-    the tree with the render-time rules ``options`` (QueryOptions keywords);
-    ``extra["traced"]`` is the (N,) bool mask of rays that fell back to exact tracing."""
-    query = TreeQuery(tree, st, QueryOptions(**(options or {})))
-
-    def object_fn(o, d, tmax):
-        res, ans, _, stats = query(o, d, tmax)
-        return res, {"traced": (ans == TRACED) | (ans == OUTSIDE), **stats}
-    return object_fn
+def tree_answerer(st, tree, options: dict | None = None) -> TreeAnswerer:
+    """The frame pipeline's answerer for object rays through the tree, with the render-time
+    rules ``options`` (QueryOptions keywords)."""
+    return TreeAnswerer(TreeQuery(tree, st, QueryOptions(**(options or {}))))
 
 
 __all__ = ["BACKEND", "BakeCancelled", "TreeCacheError", "bake_tree", "save_tree", "read_header",
-           "load_tree", "estimate_bake", "tree_object_fn"]
+           "load_tree", "estimate_bake", "tree_answerer"]

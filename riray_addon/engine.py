@@ -2,8 +2,9 @@
 bpy.ops.render.render (stills and animations), independent of any viewport.
 
 Per frame: export the scene from the render depsgraph (export.export_scene), build the core
-SceneTracer, then render rows of pixels in chunks with core's ``render_pixels``; the object's rays
-are answered by the baked RI-Tree (backend.tree_object_fn) when a fresh tree exists and loads,
+SceneTracer, then render shares of pixels through core's frame pipeline (render/frame.py:
+``shade_share``); the object's rays are answered by the baked RI-Tree (backend.tree_answerer)
+when a fresh tree exists and loads,
 else traced exactly (the user is told; scene.riray.allow_tracing = False turns that into an
 error).
 Passes: Combined, "Traced" (1 where an object ray fell back to tracing) and "Angle Error"
@@ -25,16 +26,18 @@ import traceback
 import bpy
 import numpy as np
 
-from ..core.render.camera import camera_rays
 from ..core.parallel import map_chunks
-from ..core.render.exact import SceneTracer, render_pixels, share_size
+from ..core.render.frame import ExactAnswerer, shade_share, share_size
+from ..core.render.interpolated import traced_mask
+from ..core.scene.camera import pixel_rays
+from ..core.trace.scene_tracer import SceneTracer
 from . import backend, cache
 from .export import export_camera, export_scene
 from .properties import query_options
 from .report import ExportError, Report
 
 ENGINE_ID = "RIRAY"
-# Shares of the frame per worker process: each share is one render_pixels call (one RI-Tree
+# Shares of the frame per worker process: each share is one shade_share call (one RI-Tree
 # query and tracer batch); four per worker give progress and Esc steps of about a quarter of a
 # worker's work without making the batches small.
 SHARES_PER_WORKER = 4
@@ -97,9 +100,52 @@ class RirayRenderEngine(bpy.types.RenderEngine):
             self.report({"ERROR"}, f"RI-Tree Preview failed: {type(exc).__name__}: {exc}")
 
     def _render(self, depsgraph):
-        scene = depsgraph.scene
-        view_layer = depsgraph.view_layer
+        scene, view_layer = depsgraph.scene, depsgraph.view_layer
         t_start = time.perf_counter()
+        target, core_scene = self._export(depsgraph)
+        region = render_region(scene.render, int(self.resolution_x), int(self.resolution_y))
+        w, h = region[2:]
+        st = SceneTracer(core_scene)
+        answerer, status = self._answerer(depsgraph, target, st)
+        build_s = time.perf_counter() - t_start
+        o, d = region_rays(core_scene.cameras[0], int(self.resolution_x),
+                           int(self.resolution_y), region)
+        want_angle = bool(view_layer.riray.use_pass_angle_error) and answerer is not None
+        answerer = answerer or ExactAnswerer(st)
+
+        def work(a, b):
+            """One share of pixels: colour, traced flags, angle errors, object time."""
+            share = shade_share(st, o[a:b], d[a:b], answerer)
+            return _passes(st, share, (o[a:b], d[a:b]), want_angle)
+
+        t_render = time.perf_counter()
+        procs = render_processes(scene.riray.render_processes)
+        try:
+            parts = map_chunks(work, len(o), share_size(len(o), procs, SHARES_PER_WORKER),
+                               procs, self._progress)
+        except _Cancelled:
+            self.report({"WARNING"}, "render cancelled")
+            return
+        color, traced, angle = (np.concatenate([p[i] for p in parts]) for i in range(3))
+        hits = sum(p[4] for p in parts)
+        stats = {"frame": scene.frame_current, "width": w, "height": h,
+                 "object_pixels": hits, "traced_pixels": int(traced.sum()),
+                 "traced_fraction": int(traced.sum()) / hits if hits else 0.0,
+                 "object_time_s": sum(p[3] for p in parts),
+                 "render_time_s": time.perf_counter() - t_render, "export_build_s": build_s,
+                 "tree": status["state"],
+                 "mode": "exact" if isinstance(answerer, ExactAnswerer) else "tree",
+                 "processes": procs}
+        self._write((color, traced, angle), region, stats)
+        self.update_stats("", f"RI-Tree Preview | traced {100 * stats['traced_fraction']:.1f}% "
+                              f"of {hits} object pixels | object {stats['object_time_s']:.2f} s | "
+                              f"render {stats['render_time_s']:.2f} s | export+build "
+                              f"{build_s:.2f} s")
+
+    def _export(self, depsgraph):
+        """(the specular object, the core scene with the render camera); ExportError if the
+        scene has none of either."""
+        scene = depsgraph.scene
         target = resolve_target(scene)
         if target is None:
             raise ExportError("no object to render: set the RI-Tree object in Render Properties "
@@ -111,103 +157,44 @@ class RirayRenderEngine(bpy.types.RenderEngine):
         report = Report()
         core_scene = export_scene(depsgraph, target, report, cameras="NONE")
         core_scene.cameras = [export_camera(cam_obj.evaluated_get(depsgraph), scene, report)]
-        w, h = int(self.resolution_x), int(self.resolution_y)
-        if scene.render.use_border:
-            report.info("render region (border) ignored: the full frame is rendered")
+        if cam_obj.type == "CAMERA" and cam_obj.data.dof.use_dof:
+            report.warning(f"camera {cam_obj.name}: depth of field is not rendered (everything "
+                           "is in focus)")
         report.emit(self.report, "WARNING")
+        return target, core_scene
 
-        # -- tree or exact tracing
-        st = SceneTracer(core_scene)
+    def _answerer(self, depsgraph, target, st):
+        """(the tree's answerer, or None to trace the object exactly; the cache status)."""
         status = cache.tree_status(target, depsgraph, memo=False)
-        object_fn, how = None, ""
+        how = status["message"]
         if status["state"] == "fresh":
             try:
-                tree, doc = backend.load_tree(status["path"])
-                object_fn = backend.tree_object_fn(st, tree, doc, query_options(target))
+                tree, _ = backend.load_tree(status["path"])
+                return backend.tree_answerer(st, tree, query_options(target)), status
             except (backend.TreeCacheError, OSError) as exc:   # damaged, gone, not this object's
                 how = f"the RI-Tree cache cannot be used ({exc})" + (
                     "" if "re-bake" in str(exc) else "; re-bake")
-        else:
-            how = status["message"]
-        if object_fn is None:
-            if not scene.riray.allow_tracing:
-                raise ExportError(f"{target.name}: {how}; tracing without a tree is switched "
-                                  "off (Render Properties > RI-Tree > Trace without tree)")
-            self.report({"WARNING"}, f"{target.name}: {how}; the object is traced exactly")
-        build_s = time.perf_counter() - t_start
+        if not depsgraph.scene.riray.allow_tracing:
+            raise ExportError(f"{target.name}: {how}; tracing without a tree is switched "
+                              "off (Render Properties > RI-Tree > Trace without tree)")
+        self.report({"WARNING"}, f"{target.name}: {how}; the object is traced exactly")
+        return None, status
 
-        opts = view_layer.riray
-        want_angle = bool(opts.use_pass_angle_error)
-        o, d = camera_rays(core_scene.cameras[0], w, h)
-        n = len(o)
-
-        def work(a, b):
-            """One chunk of pixels: colour, traced flags, angle errors, object time."""
-            captured = {}
-
-            def exact_fn(oo, dd, tmax):
-                res = st.object_function(oo, dd, tmax)
-                captured["res"], captured["traced"] = res, np.ones(len(oo), bool)
-                return res, {}
-
-            def tree_fn(oo, dd, tmax):
-                res, extra = object_fn(oo, dd, tmax)
-                captured["res"] = res
-                captured["traced"] = np.asarray(extra.pop("traced", np.zeros(len(oo), bool)),
-                                                bool)
-                return res, extra
-
-            col, stats, hit = render_pixels(st, o[a:b], d[a:b],
-                                            exact_fn if object_fn is None else tree_fn)[:3]
-            tr = np.zeros(b - a, np.float32)
-            ang = np.zeros(b - a, np.float32)
-            if len(hit):
-                res = captured["res"]
-                tr[hit] = captured["traced"][res.hit]
-                if want_angle and object_fn is not None:
-                    used = res.take(res.hit)
-                    exact = st.object_function(o[a + hit], d[a + hit])
-                    ang[hit] = angle_error_deg(used.out_dir, exact.out_dir, used.null,
-                                               exact.null)
-            return col, tr, ang, stats["object_cpu_s"], len(hit)
-
-        def progress(frac):
-            if self.test_break():
-                raise _Cancelled
-            self.update_progress(frac)
-            self.update_stats("", f"RI-Tree Preview: {100 * frac:.0f}%")
-
-        t_render = time.perf_counter()
-        procs = render_processes(scene.riray.render_processes)
-        try:
-            parts = map_chunks(work, n, share_size(n, procs, SHARES_PER_WORKER), procs,
-                               progress)
-        except _Cancelled:
-            self.report({"WARNING"}, "render cancelled")
-            return
-        color, traced, angle = (np.concatenate([p[i] for p in parts]) for i in range(3))
-        obj_time = sum(p[3] for p in parts)
-        hits = sum(p[4] for p in parts)
-        traced_hits = int(traced.sum())
-        render_s = time.perf_counter() - t_render
-        frac_traced = traced_hits / hits if hits else 0.0
-        stats = {"frame": scene.frame_current, "width": w, "height": h,
-                 "object_pixels": hits, "traced_pixels": traced_hits,
-                 "traced_fraction": frac_traced, "object_time_s": obj_time,
-                 "render_time_s": render_s, "export_build_s": build_s,
-                 "tree": status["state"], "mode": "tree" if object_fn else "exact",
-                 "processes": procs}
-        self._write(scene, view_layer, color, traced, angle, w, h, stats)
-        self.update_stats("", f"RI-Tree Preview | traced {100 * frac_traced:.1f}% of "
-                              f"{hits} object pixels | object {obj_time:.2f} s | render "
-                              f"{render_s:.2f} s | export+build {build_s:.2f} s")
+    def _progress(self, frac):
+        if self.test_break():
+            raise _Cancelled
+        self.update_progress(frac)
+        self.update_stats("", f"RI-Tree Preview: {100 * frac:.0f}%")
 
     # ------------------------------------------------------------------ output
-    def _write(self, scene, view_layer, color, traced, angle, w, h, stats):
+    def _write(self, images, region, stats):
+        """Combined, Traced and Angle Error passes (``images``: flat colour, traced, angle
+        arrays of the ``region``'s pixels, top row first) and the stamp fields."""
+        (color, traced, angle), (w, h) = images, region[2:]
         img = color.reshape(h, w, 3)
         rgba = np.ones((h, w, 4), np.float32)
         rgba[..., :3] = img[::-1]
-        result = self.begin_result(0, 0, w, h)
+        result = self.begin_result(0, 0, w, h)      # the region's own pixel coordinates
         try:
             layer = result.layers[0]
             layer.passes["Combined"].rect.foreach_set(rgba.ravel())
@@ -216,26 +203,75 @@ class RirayRenderEngine(bpy.types.RenderEngine):
                 p = layer.passes.find_by_name(name, self.active_view_get())
                 if p is not None:
                     p.rect.foreach_set(np.ascontiguousarray(arr.reshape(h, w)[::-1]).ravel())
-            try:
-                result.stamp_data_add_field("riray traced fraction",
-                                            f"{stats['traced_fraction']:.4f}")
-                result.stamp_data_add_field("riray render s", f"{stats['render_time_s']:.3f}")
-            except (AttributeError, RuntimeError, TypeError):
-                pass
         finally:
             self.end_result(result)
+        # The frame's own result (not the pixels' one) carries the metadata saved with images.
+        final = self.get_result()
+        final.stamp_data_add_field("riray traced fraction", f"{stats['traced_fraction']:.4f}")
+        final.stamp_data_add_field("riray render s", f"{stats['render_time_s']:.3f}")
         LAST_RENDER.clear()
         LAST_RENDER.update(image=img.copy(), traced=traced.reshape(h, w).copy(),
                            angle=angle.reshape(h, w).copy(), stats=stats)
 
 
+def render_region(render, width: int, height: int) -> tuple[int, int, int, int]:
+    """(x, y, width, height) in pixels, bottom-up as Blender counts them, of what is rendered:
+    the render region (border) when it is on, as Blender rounds it, else the whole frame."""
+    if not render.use_border:
+        return 0, 0, width, height
+    x0, x1 = int(render.border_min_x * width), int(render.border_max_x * width)
+    y0, y1 = int(render.border_min_y * height), int(render.border_max_y * height)
+    return x0, y0, max(x1 - x0, 1), max(y1 - y0, 1)
+
+
+def region_rays(camera, width: int, height: int, region):
+    """The camera rays of the ``region``'s pixels, top row first."""
+    x0, y0, w, h = region
+    py, px = np.mgrid[height - y0 - h:height - y0, x0:x0 + w].astype(np.float64) + 0.5
+    return pixel_rays(camera, width, height, px, py)
+
+
+def _passes(st, share, rays, want_angle: bool):
+    """A rendered share's pass values: (colour, traced flag, angle error in degrees against
+    exact tracing when ``want_angle``, object CPU seconds, object pixels)."""
+    n = len(share.color)
+    tr = np.zeros(n, np.float32)
+    ang = np.zeros(n, np.float32)
+    hit, ans = share.hit, share.answer
+    if len(hit) and ans.answer is not None:
+        tr[hit] = traced_mask(ans.answer)[ans.rays.hit]
+        if want_angle:
+            used = ans.rays.take(ans.rays.hit)
+            exact = st.object_function(rays[0][hit], rays[1][hit])
+            ang[hit] = angle_error_deg(used.out_dir, exact.out_dir, used.null, exact.null)
+    elif len(hit):
+        tr[hit] = 1.0
+    return share.color, tr, ang, share.stats["object_cpu_s"], len(hit)
+
+
+# Built-in panels that show for every engine (they list BLENDER_RENDER) but whose settings
+# riray replaces or ignores: the light panel with the light type only (DATA_PT_EEVEE_light has
+# colour and power) and the spot shape (spot lights render as point lights).
+EXCLUDED_PANELS = {"DATA_PT_light", "DATA_PT_spot"}
+# Engine-specific built-in panels whose settings riray reads: material slots, material and
+# world Surface, the light's colour and power, depth of field (exported, reported as not
+# rendered), and the view layer's Passes (RI-Tree's passes are drawn inside it).
+EXTRA_PANELS = ("EEVEE_MATERIAL_PT_context_material", "EEVEE_MATERIAL_PT_surface",
+                "EEVEE_WORLD_PT_surface", "DATA_PT_EEVEE_light", "DATA_PT_camera_dof",
+                "VIEWLAYER_PT_layer_passes")
+
+
 def get_panels():
-    """Built-in panels that should also show for this engine (lights, camera, materials...)."""
-    exclude = {"VIEWLAYER_PT_filter", "VIEWLAYER_PT_layer_passes"}
+    """Built-in panels that also show for this engine (output, camera, lights, materials...)."""
+    every = [p for p in bpy.types.Panel.__subclasses__() if hasattr(p, "COMPAT_ENGINES")]
+    # Some panels share one engine set (the node editor's copies of the light panels).
+    excluded = {id(p.COMPAT_ENGINES) for p in every if p.__name__ in EXCLUDED_PANELS}
     panels = []
-    for panel in bpy.types.Panel.__subclasses__():
-        engines = getattr(panel, "COMPAT_ENGINES", None)
-        if engines is not None and "BLENDER_RENDER" in engines and panel.__name__ not in exclude:
+    for panel in every:
+        engines = panel.COMPAT_ENGINES
+        if id(engines) in excluded:
+            continue
+        if "BLENDER_RENDER" in engines or panel.__name__ in EXTRA_PANELS:
             panels.append(panel)
     return panels
 

@@ -42,6 +42,9 @@ IDENTITY_TOL = 1e-9
 # Fingerprint grid: world coordinates are hashed in units of this fraction of the object's box
 # diagonal (float32 noise from editing transforms stays below it; real edits do not).
 FINGERPRINT_QUANTUM = 1e-6
+# An object whose extent is at most this fraction of its distance from the origin (or of 1 m)
+# has zero size: float rounding of one repeated point, nothing to trace.
+ZERO_SIZE = 1e-12
 
 
 # --------------------------------------------------------------------------- small helpers
@@ -320,8 +323,8 @@ def _mesh_patches(obj, depsgraph, report: Report) -> tuple[list[Patch], list]:
         mi = int(pmat[arr["tri_poly"][sel][0]])
         used_mats.append(slots[mi] if mi < len(slots) else None)
     if np.any(arr["poly_smooth"]):
-        report.info(f"{obj.name}: smooth shading of mesh faces is not simulated; the object is "
-                    "traced as flat triangles")
+        report.warning(f"{obj.name}: smooth shading of mesh faces is not simulated; the "
+                       "object is traced as flat triangles")
     return patches, used_mats
 
 
@@ -353,6 +356,7 @@ def export_object(obj, depsgraph, report: Report | None = None) -> SpecularObjec
                               "splines (only curves or invalid splines)")
     else:
         patches, used = _mesh_patches(obj, depsgraph, report)
+    _check_size(obj.name, patches)
     distinct = []
     for m in used:
         if m not in distinct:
@@ -364,6 +368,16 @@ def export_object(obj, depsgraph, report: Report | None = None) -> SpecularObjec
                        f"{mat.name if mat else '(none)'!r}, also for {others}")
     return SpecularObject(name=obj.name, patches=patches,
                           material=matmap.object_material(mat, report, obj.name))
+
+
+def _check_size(name: str, patches) -> None:
+    """ExportError for an object of zero size (every control point or vertex in one place)."""
+    surf = [p.surface.points.reshape(-1, 3) for p in patches if p.surface is not None]
+    pts = np.concatenate(surf + [p.vertices for p in patches if p.surface is None])
+    if np.ptp(pts, axis=0).max() <= ZERO_SIZE * max(1.0, float(np.abs(pts).max())):
+        what = "control points" if surf else "vertices"
+        raise ExportError(f"{name}: the object has zero size (all its {what} lie at one "
+                          "point): there is no surface to render or bake")
 
 
 # --------------------------------------------------------------------------- environment
@@ -430,20 +444,22 @@ def export_light(obj, report: Report, matrix=None, name: str | None = None) -> L
     li = obj.data
     m = matrix_np(matrix if matrix is not None else obj.matrix_world)
     name = name or obj.name
-    color = _rgb(li.color)
+    color = _rgb(np.multiply(li.color, li.temperature_color) if getattr(li, "use_temperature",
+                                                                          False) else li.color)
+    energy = float(li.energy) * 2.0 ** float(getattr(li, "exposure", 0.0))
     shadows = bool(getattr(li, "use_shadow", True))
     if li.type == "SUN":
         d = -m[:3, 2]
         d = d / np.linalg.norm(d)
-        return Light(name=name, kind="sun", color=color, strength=float(li.energy),
+        return Light(name=name, kind="sun", color=color, strength=energy,
                      direction=tuple(float(x) for x in d), shadows=shadows)
     if li.type != "POINT":
         report.warning(f"light {name}: {li.type.lower()} lights are rendered as point lights "
                        "of the same power")
     elif getattr(li, "shadow_soft_size", 0.0) > 0.0:
-        report.info(f"light {name}: radius {li.shadow_soft_size:g} m ignored (hard shadows "
-                    "from the centre)")
-    return Light(name=name, kind="point", color=color, power=float(li.energy),
+        report.warning(f"light {name}: radius {li.shadow_soft_size:g} m ignored (hard "
+                       "shadows from the centre)")
+    return Light(name=name, kind="point", color=color, power=energy,
                  position=tuple(float(x) for x in m[:3, 3]), shadows=shadows)
 
 
@@ -508,7 +524,8 @@ def export_environment(depsgraph, exclude, report: Report):
             if light is not None:
                 lights.append(light)
         elif obj.type not in {"CAMERA", "EMPTY", "LIGHT_PROBE", "ARMATURE", "SPEAKER"}:
-            report.info(f"{orig.name}: {obj.type.lower()} objects are not part of the environment")
+            report.warning(f"{orig.name}: {obj.type.lower()} objects are not part of the "
+                           "environment")
     world = matmap.export_world(depsgraph.scene.world, report, cam_matrix)
     return meshes, materials, lights, world
 

@@ -56,6 +56,18 @@ class BakeJob:
         """Start the worker; ``scheduler``: a Dask scheduler address or local:N to bake on
         (core/cluster.py), "" to bake in the worker's own processes."""
         self.job_dir = tempfile.mkdtemp(prefix="riray_bake_")
+        try:
+            self._launch(scene, params, meta, scheduler)
+        except BaseException:
+            shutil.rmtree(self.job_dir, ignore_errors=True)
+            raise
+        self.state = "running"
+        self.started = time.time()
+        self.message = "starting worker"
+        return self
+
+    def _launch(self, scene, params: dict, meta: dict, scheduler: str) -> None:
+        """Write the job folder's files and start the worker process."""
         folder = os.path.dirname(os.path.abspath(self.cache_path))
         os.makedirs(folder, exist_ok=True)
         self.tmp_output = f"{os.path.abspath(self.cache_path)}.tmp{os.getpid()}_{id(self)}"
@@ -70,10 +82,6 @@ class BakeJob:
                                          stderr=subprocess.STDOUT, cwd=self.job_dir)
         finally:
             log.close()
-        self.state = "running"
-        self.started = time.time()
-        self.message = "starting worker"
-        return self
 
     @property
     def running(self) -> bool:

@@ -109,7 +109,7 @@ def _coords(socket, ctx: _Ctx, default: str) -> tuple[str, np.ndarray]:
     node, out = src
     if node.type == "UVMAP" or (node.type == "TEX_COORD" and out.name == "UV"):
         if node.type == "UVMAP" and node.uv_map:
-            ctx.report.info(f"{ctx.owner}: UV map {node.uv_map!r}: the mesh's active UV map is used")
+            ctx.warn(f"UV map {node.uv_map!r}: the mesh's active UV map is used")
         return ("uv" if ctx.has_uvs else "world"), scale
     if node.type == "TEX_COORD" and out.name == "Object":
         if getattr(node, "object", None) is not None or not ctx.identity:
@@ -149,7 +149,7 @@ def _image_texture(node, ctx: _Ctx) -> Texture | None:
     if node.extension != "REPEAT":
         ctx.warn(f"image extension {node.extension} not supported; repeat")
     if node.interpolation != "Linear":
-        ctx.report.info(f"{ctx.owner}: image interpolation {node.interpolation} -> linear")
+        ctx.warn(f"image interpolation {node.interpolation} -> linear")
     coords, scale = _coords(_input(node, "Vector"), ctx, "uv")
     if not np.allclose(scale[:2], scale[0]):
         ctx.warn("non-uniform Mapping scale on an image; using the x scale")

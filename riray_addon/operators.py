@@ -21,10 +21,12 @@ from ..core.scene.io import save_scene
 from . import backend, cache, compat
 from .export import export_camera, export_scene, object_fingerprint
 from .jobs import JOBS, BakeJob, format_bytes, format_duration, running_job
-from .properties import BAKE_KEYS, QUERY_KEYS, bake_params, scheduler_address
+from .properties import BAKE_KEYS, QUALITY, QUERY_KEYS, bake_params, scheduler_address
 from .report import ExportError, Report
 
 TIMER_S = 0.1
+# Deepest viewpoint level a bake may reach: Viewpoint depth + Viewpoint refine (core's rule).
+MAX_VIEWPOINT_LEVEL = 10
 
 
 # --------------------------------------------------------------------------- helpers
@@ -71,17 +73,29 @@ def camera_views(context, params: dict, report: Report) -> list:
     return out
 
 
-def checked_params(obj) -> dict:
-    """The object's bake parameters, refused at once (ExportError naming the allowed values)
-    when core's bake would reject them. Viewpoint refinement only applies to camera bakes, so
-    it is off (and not checked) otherwise."""
-    params = bake_params(obj)
+def checked_params(obj, options: dict | None = None) -> dict:
+    """The object's bake parameters (with ``options``, setting -> value, as if set on it),
+    refused at once (ExportError in the panel's terms) when core's bake would reject them.
+    Viewpoint refinement only applies to camera bakes, so it is off (and not checked)
+    otherwise."""
+    params = {**bake_params(obj), **(options or {})}
     if not params["bake_for_cameras"]:
         params["viewpoint_refine"] = params["finest_min_traced"] = 0
+    label = {k: p.name for k, p in obj.riray.bl_rna.properties.items()}
+    vd, refine = params["viewpoint_depth"], params["viewpoint_refine"]
+    if vd + refine > MAX_VIEWPOINT_LEVEL:
+        raise ExportError(f"{obj.name}: {label['viewpoint_depth']} {vd} + "
+                          f"{label['viewpoint_refine']} {refine} is more than "
+                          f"{MAX_VIEWPOINT_LEVEL}: lower one of them")
+    if params["min_direction_depth"] > params["direction_depth"]:
+        raise ExportError(f"{obj.name}: {label['min_direction_depth']} "
+                          f"{params['min_direction_depth']} is more than "
+                          f"{label['direction_depth']} {params['direction_depth']}")
     try:
         backend.bake_params(params)
-    except ValueError as exc:
-        raise ExportError(f"{obj.name}: {exc}") from None
+    except ValueError as exc:          # a rule the checks above do not know
+        rule = str(exc).split(" (got ")[0]      # without core's list of internal parameters
+        raise ExportError(f"{obj.name}: the bake settings are refused: {rule}") from None
     return params
 
 
@@ -120,7 +134,7 @@ def start_bake(context, obj, report: Report | None = None) -> BakeJob:
         context.scene.riray.target = obj
     try:
         job = BakeJob(obj.name, path).start(scene, params, meta, scheduler_address(context))
-    except OSError as exc:
+    except (OSError, ValueError) as exc:     # ValueError: core refuses the exported scene
         raise ExportError(f"{obj.name}: cannot start the bake: {exc}") from None
     JOBS[obj.name] = job
     return job
@@ -210,10 +224,14 @@ class RIRAY_OT_bake(bpy.types.Operator):
     _job = None
 
     def _apply_options(self, obj) -> None:
+        """Store the options given on the object; refused ones (ExportError) leave it as it
+        was. Values Blender remembers from an earlier call do not count as given."""
         keys = ("quality",) + tuple(k for k in BAKE_KEYS + QUERY_KEYS if k != "quality")
-        for k in keys:                  # a preset first, then the parameters given with it
-            if self.properties.is_property_set(k):
-                setattr(obj.riray, k, getattr(self, k))
+        given = {k: getattr(self, k) for k in keys
+                 if self.properties.is_property_set(k, ghost=False)}
+        checked_params(obj, {**QUALITY.get(given.get("quality"), {}), **given})
+        for k, v in given.items():      # a preset first, then the parameters given with it
+            setattr(obj.riray, k, v)
         if self.cache_file:
             obj.riray.cache_file = self.cache_file
 

@@ -232,9 +232,10 @@ class RIRAY_PT_render(_EnginePanel, bpy.types.Panel):
 
 
 class RIRAY_PT_passes(_EnginePanel, bpy.types.Panel):
-    bl_label = "RI-Tree Passes"
+    bl_label = "RI-Tree"
     bl_idname = "RIRAY_PT_passes"
     bl_context = "view_layer"
+    bl_parent_id = "VIEWLAYER_PT_layer_passes"
 
     def draw(self, context):
         v = context.view_layer.riray

@@ -2,24 +2,31 @@
 
 Conventions: arrays are row-major, top row first, shape (H, W, 3); float images hold linear RGB.
 PNG files are assumed to be sRGB-encoded (gAMA/iCCP/sRGB chunks are ignored); alpha is dropped.
-Every write goes to a temporary file beside the target and is moved into place with os.replace.
+Every write goes through riray.atomic.atomic_write (temporary file beside the target, fsync,
+os.replace; an OSError names the file and its cause).
 """
 
 from __future__ import annotations
 
 import os
+import stat
 import struct
-import uuid
 import zlib
-from collections.abc import Callable
 from typing import BinaryIO
 
 import numpy as np
+
+from ..atomic import atomic_write
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # colour type -> samples per pixel; allowed bit depths
 _CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
 _DEPTHS = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: (8, 16)}
+# Largest image read (and rendered), pixels on a side: bounds decoded memory; checked from the
+# PNG's IHDR or the .npy header before any pixel is decoded.
+MAX_IMAGE_SIDE = 16384
+# Largest image file read, bytes: a 16384 x 16384 float32 RGB .npy (3.2 GB) fits.
+MAX_IMAGE_BYTES = 1 << 32
 
 
 class ImageError(ValueError):
@@ -27,23 +34,6 @@ class ImageError(ValueError):
 
 
 # --------------------------------------------------------------------------- helpers
-def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], None]) -> None:
-    """Call ``write(f)`` on a new temporary file beside ``path``, then os.replace it onto ``path``.
-
-    Readers never see a half-written file; on any error the temporary file is removed.
-    """
-    path = os.fspath(path)
-    tmp = f"{path}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
-    try:
-        with open(tmp, "xb") as f:
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def linear_to_srgb(x: np.ndarray) -> np.ndarray:
     """The sRGB transfer function (IEC 61966-2-1) for linear values in [0, 1]."""
     x = np.asarray(x, dtype=np.float64)
@@ -201,6 +191,8 @@ def decode_png(data: bytes) -> tuple[np.ndarray, int]:
         raise ImageError(f"invalid colour type {ctype} / bit depth {depth}")
     if w == 0 or h == 0 or comp != 0 or filt != 0:
         raise ImageError("invalid IHDR (zero size or unknown compression/filter method)")
+    if max(w, h) > MAX_IMAGE_SIDE:
+        raise ImageError(f"{w} x {h} pixels: larger than {MAX_IMAGE_SIDE} on a side")
     if interlace:
         raise ImageError("interlaced (Adam7) PNG is not supported; re-save it without interlacing")
     if ctype == 3 and palette is None:
@@ -210,12 +202,13 @@ def decode_png(data: bytes) -> tuple[np.ndarray, int]:
     nchan = _CHANNELS[ctype]
     bits = depth * nchan
     rowbytes, bpp = (w * bits + 7) // 8, max(1, bits // 8)
+    need = h * (1 + rowbytes)
     dec = zlib.decompressobj()
-    try:
-        raw = dec.decompress(b"".join(idat))
+    try:   # inflate no further than the IHDR's size (+1 byte: surplus data is ignored)
+        raw = dec.decompress(b"".join(idat), need + 1)
     except zlib.error as e:
         raise ImageError(f"corrupt compressed image data ({e})") from None
-    if not dec.eof or len(raw) < h * (1 + rowbytes):
+    if len(raw) < need or (len(raw) == need and not dec.eof):
         raise ImageError("truncated image data")
     rows = _unfilter(raw, h, rowbytes, bpp)
     if depth == 16:
@@ -234,10 +227,41 @@ def decode_png(data: bytes) -> tuple[np.ndarray, int]:
     return samples, (1 << depth) - 1
 
 
+def open_regular(path: str | os.PathLike, max_bytes: int) -> BinaryIO:
+    """``path`` opened for binary reading; ValueError naming it unless it is a regular file of at
+    most ``max_bytes`` bytes. Opened non-blocking, so a FIFO is refused rather than waited on."""
+    nonblock = getattr(os, "O_NONBLOCK", 0)
+    fd = os.open(path, os.O_RDONLY | nonblock | getattr(os, "O_BINARY", 0))
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise ValueError(f"{os.fspath(path)}: not a regular file")
+        if info.st_size > max_bytes:
+            raise ValueError(f"{os.fspath(path)}: {info.st_size} bytes, more than the "
+                             f"{max_bytes} read")
+        if nonblock:
+            os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_regular(path: str | os.PathLike, max_bytes: int) -> bytes:
+    """The bytes of the regular file ``path`` (see :func:`open_regular`), read bounded."""
+    with open_regular(path, max_bytes) as f:
+        data = f.read(max_bytes + 1)
+    if len(data) > max_bytes:
+        raise ValueError(f"{os.fspath(path)}: more than {max_bytes} bytes")
+    return data
+
+
 def read_png_samples(path: str | os.PathLike) -> tuple[np.ndarray, int]:
-    """(samples, maxcode) of a PNG file (see :func:`decode_png`)."""
-    with open(path, "rb") as f:
-        data = f.read()
+    """(samples, maxcode) of a PNG file (see :func:`decode_png`) of at most MAX_IMAGE_BYTES."""
+    try:
+        data = read_regular(path, MAX_IMAGE_BYTES)
+    except ValueError as e:
+        raise ImageError(str(e)) from None
     try:
         return decode_png(data)
     except ImageError as e:
@@ -264,18 +288,45 @@ def write_float_image(path: str | os.PathLike, rgb: np.ndarray) -> None:
     atomic_write(path, lambda f: np.save(f, arr.astype(np.float32), allow_pickle=False))
 
 
-def read_float_image(path: str | os.PathLike) -> np.ndarray:
-    """Read a .npy image as float64 (H, W, 3): (H, W) grey is replicated, a 4th channel dropped."""
+def _npy_header(f: BinaryIO, path: str) -> tuple[tuple, np.dtype]:
+    """(shape, dtype) of the .npy file ``f``, read from its header alone; ImageError unless it
+    is a numeric (H, W[, 1|3|4]) image of 1..MAX_IMAGE_SIDE pixels a side whose data ``f``
+    holds."""
+    fmt = np.lib.format
     try:
-        arr = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise
-    except (ValueError, OSError, EOFError) as e:
-        raise ImageError(f"{os.fspath(path)}: not a readable .npy array ({e})") from None
-    shape_ok = arr.ndim == 2 or (arr.ndim == 3 and arr.shape[2] in (1, 3, 4))
-    if arr.dtype.kind not in "fiu" or not shape_ok:
-        raise ImageError(f"{os.fspath(path)}: expected a numeric (H, W[, 1|3|4]) array "
-                         f"(got {arr.dtype} {arr.shape})")
+        version = fmt.read_magic(f)
+        read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        shape, _, dtype = read(f)
+    except (ValueError, EOFError) as e:
+        raise ImageError(f"{path}: not a readable .npy array ({e})") from None
+    if dtype.kind not in "fiu" or not (len(shape) == 2 or (len(shape) == 3
+                                                           and shape[2] in (1, 3, 4))):
+        raise ImageError(f"{path}: expected a numeric (H, W[, 1|3|4]) array "
+                         f"(got {dtype} {shape})")
+    if not 1 <= min(shape[:2]) <= max(shape[:2]) <= MAX_IMAGE_SIDE:
+        raise ImageError(f"{path}: {shape[0]} x {shape[1]} pixels: an image needs 1.."
+                         f"{MAX_IMAGE_SIDE} on a side")
+    held = os.fstat(f.fileno()).st_size - f.tell()
+    if held < int(np.prod(shape)) * dtype.itemsize:
+        raise ImageError(f"{path}: truncated: the header says {shape} {dtype}, the file holds "
+                         f"{held} bytes of data")
+    return shape, dtype
+
+
+def read_float_image(path: str | os.PathLike) -> np.ndarray:
+    """Read a .npy image as float64 (H, W, 3): (H, W) grey is replicated, a 4th channel dropped.
+    The header is checked (:func:`_npy_header`) before any pixel is read."""
+    try:
+        f = open_regular(path, MAX_IMAGE_BYTES)
+    except ValueError as e:
+        raise ImageError(str(e)) from None
+    with f:
+        _npy_header(f, os.fspath(path))
+        f.seek(0)
+        try:
+            arr = np.lib.format.read_array(f, allow_pickle=False)
+        except (ValueError, OSError, EOFError) as e:
+            raise ImageError(f"{os.fspath(path)}: not a readable .npy array ({e})") from None
     arr = arr.astype(np.float64)
     if arr.ndim == 2:
         arr = arr[:, :, None]

@@ -21,11 +21,13 @@ import time
 import numpy as np
 
 from ..parallel import map_chunks, workers_default
-from ..ritree.interp import angle_between
-from ..ritree.query import (ANSWER_NAMES, EXTRAPOLATED_S, FULL, OUTSIDE, TRACED,
-                           TRACING_STAGES, WHY_NAMES, TreeQuery)
-from .camera import camera_rays
-from .exact import RenderResult, SceneTracer, peak_rss_mib, render_pixels, share_size
+from ..ritree.query import ANSWER_NAMES, OUTSIDE, TRACED, TRACING_STAGES, WHY_NAMES, TreeQuery
+from ..scene.camera import camera_rays
+from ..trace.scene_tracer import SceneTracer
+from .compare import compare_share, disagreements  # noqa: F401  (disagreements: re-exported)
+from .exact import RenderResult
+from .frame import (ExactAnswerer, FrameResult, TreeAnswerer, join_shares, peak_rss_mib,
+                    share_size)
 
 ERROR_GREY_MAX_DEG = 2.0     # Figure 14: greyscale up to 2 degrees, green beyond
 
@@ -41,106 +43,84 @@ def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
     o, d = camera_rays(cam, w, h)
     st = st or SceneTracer(scene)
     query = TreeQuery(tree, st, options)
-
-    def work(a, b):
-        oo, dd = o[a:b], d[a:b]
-        box = {}
-
-        def tree_fn(oc, dc, tmax):
-            res, ans, why, qs = query(oc, dc, tmax)
-            box.update(ans=ans, why=why, res=res)
-            return res, qs
-
-        n = b - a
-        answers = np.full(n, -1, np.int8)
-        whys = np.zeros(n, np.int8)
-        err = np.full(n, np.nan)
-        out = {}
-        col_x = None
-        keep = {}
-
-        def exact_fn(oc, dc, tmax):
-            res = st.object_function(oc, dc, tmax)
-            keep["res"] = res
-            return res, {}
-
-        runs = [("interp", tree_fn)] + ([("exact", exact_fn)] if reference else [])
-        if (a // size) % 2:
-            runs.reverse()
-        for name, fn in runs:
-            col_r, s_r, hit_r, cand = render_pixels(st, oo, dd, fn)
-            out[name] = s_r
-            if name == "interp":
-                col, hit_i, cand_i = col_r, hit_r, cand
-                answers[cand] = box["ans"]
-                whys[cand] = box["why"]
-            else:
-                col_x = col_r
-        if reference:
-            ri, rx = box["res"], keep["res"]
-            interp = (box["ans"] >= FULL) & (box["ans"] <= EXTRAPOLATED_S) & ri.hit & rx.hit \
-                & ~rx.null
-            err[cand_i[interp]] = np.degrees(angle_between(ri.out_dir[interp], rx.out_dir[interp]))
-            out["hit_disagree"], out["null_disagree"] = disagreements(ri, rx)
-        return col, col_x, answers, whys, err, out, hit_i
-
+    tree_answerer = TreeAnswerer(query)
+    exact_answerer = ExactAnswerer(st) if reference else None
     workers = workers_default() if workers is None else workers
     size = share_size(len(o), workers)
+
+    def work(a, b):
+        return compare_share(st, o[a:b], d[a:b], tree_answerer, exact_answerer,
+                             exact_first=bool((a // size) % 2))
+
     t0 = time.perf_counter()
     parts = map_chunks(work, len(o), size, workers, progress)
-    wall = time.perf_counter() - t0
-    img = np.concatenate([p[0] for p in parts]).reshape(h, w, 3)
-    answers = np.concatenate([p[2] for p in parts])
-    whys = np.concatenate([p[3] for p in parts])
-    err = np.concatenate([p[4] for p in parts])
-    objmask = np.zeros(len(o), bool)
-    off = 0
-    for p in parts:
-        objmask[p[6] + off] = True
-        off += len(p[2])
-    traced = (answers == TRACED) | (answers == OUTSIDE)
-    si = _sum([p[5]["interp"] for p in parts])
-    stats = {"answers": {ANSWER_NAMES[k]: int(np.sum(answers == k)) for k in range(len(ANSWER_NAMES))},
-             "traced_because": {WHY_NAMES[k]: int(np.sum(whys == k)) for k in range(1, len(WHY_NAMES))},
-             "interp_counts": si}
-    n_obj = int(objmask.sum())
+    frame = join_shares([p.tree for p in parts], time.perf_counter() - t0)
+    err = np.concatenate([p.err_deg for p in parts])
+    stats = _answer_stats(frame)
     summary = {"scene": scene.name, "camera": cam.name, "width": w, "height": h,
-               "mode": "interpolated", "policy": query.opt.policy,
-               "object_pixels": n_obj, "rays_traced": int(traced.sum()),
-               "traced_fraction_of_object": round(float(traced[objmask].mean()) if n_obj else 0.0, 5),
-               "interp_object_only_cpu_s": round(si["object_cpu_s"], 4),
-               "interp_total_cpu_s": round(si["total_cpu_s"], 4),
-               "interp_object_only_wall_s": round(si["object_wall_s"], 4),
-               "interp_total_wall_s": round(si["total_wall_s"], 4),
-               "query_own_cpu_s": round(query_own_cpu(si), 4),
-               "shares": len(parts), "wall_s": round(wall, 4),
-               "peak_rss_mib": round(peak_rss_mib(), 1)}
-    masks = {"traced": traced.reshape(h, w), "object": objmask.reshape(h, w),
-             "angle_error_deg": err.reshape(h, w)}
+               "mode": "interpolated", "policy": query.opt.policy, **_tree_summary(frame)}
+    masks = {"traced": traced_mask(frame.answer).reshape(h, w),
+             "object": frame.object_mask.reshape(h, w), "angle_error_deg": err.reshape(h, w)}
     if reference:
-        sx = _sum([p[5]["exact"] for p in parts])
-        exact = np.concatenate([p[1] for p in parts]).reshape(h, w, 3)
-        e = err[np.isfinite(err)]
-        summary.update({
-            "exact_object_only_cpu_s": round(sx["object_cpu_s"], 4),
-            "exact_total_cpu_s": round(sx["total_cpu_s"], 4),
-            "exact_object_only_wall_s": round(sx["object_wall_s"], 4),
-            "exact_total_wall_s": round(sx["total_wall_s"], 4),
-            "object_only_speedup": round(sx["object_cpu_s"] / max(si["object_cpu_s"], 1e-9), 3),
-            "total_speedup": round(sx["total_cpu_s"] / max(si["total_cpu_s"], 1e-9), 3),
-            "query_own_fraction_of_exact_object_only": round(
-                query_own_cpu(si) / max(sx["object_cpu_s"], 1e-9), 4),
-            "angle_error_deg_mean": round(float(e.mean()), 5) if len(e) else None,
-            "angle_error_deg_p99": round(float(np.percentile(e, 99)), 5) if len(e) else None,
-            "angle_error_deg_max": round(float(e.max()), 5) if len(e) else None,
-            "hit_disagreements": sum(p[5]["hit_disagree"] for p in parts),
-            "null_disagreements": sum(p[5]["null_disagree"] for p in parts),
-            "psnr_db": round(psnr(img, exact), 3),
-            "max_pixel_diff": round(float(np.abs(_clip(img) - _clip(exact)).max()), 5)})
-        stats["exact_counts"] = sx
-        masks["exact"] = exact
+        exact = join_shares([p.exact for p in parts], frame.wall_s)
+        summary.update(_reference_summary(frame, exact, parts, err))
+        stats["exact_counts"] = exact.stats
+        masks["exact"] = exact.color.reshape(h, w, 3)
     stats["summary"] = summary
-    return RenderResult(image=img, stats=stats, masks=masks)
+    return RenderResult(image=frame.color.reshape(h, w, 3), stats=stats, masks=masks)
+
+
+def traced_mask(answer: np.ndarray) -> np.ndarray:
+    """Rays traced exactly by the tree query (inside the tree or outside it)."""
+    return (answer == TRACED) | (answer == OUTSIDE)
+
+
+def _answer_stats(frame: FrameResult) -> dict:
+    """How every ray was answered and why rays were traced; the query's summed counts."""
+    a, why = frame.answer, frame.why
+    return {"answers": {ANSWER_NAMES[k]: int(np.sum(a == k)) for k in range(len(ANSWER_NAMES))},
+            "traced_because": {WHY_NAMES[k]: int(np.sum(why == k))
+                               for k in range(1, len(WHY_NAMES))},
+            "interp_counts": frame.stats}
+
+
+def _tree_summary(frame: FrameResult) -> dict:
+    """The tree render's share of the summary: pixels, traced rays, times, memory."""
+    si, obj = frame.stats, frame.object_mask
+    traced = traced_mask(frame.answer)
+    n_obj = int(obj.sum())
+    return {"object_pixels": n_obj, "rays_traced": int(traced.sum()),
+            "traced_fraction_of_object": round(float(traced[obj].mean()) if n_obj else 0.0, 5),
+            "interp_object_only_cpu_s": round(si["object_cpu_s"], 4),
+            "interp_total_cpu_s": round(si["total_cpu_s"], 4),
+            "interp_object_only_wall_s": round(si["object_wall_s"], 4),
+            "interp_total_wall_s": round(si["total_wall_s"], 4),
+            "query_own_cpu_s": round(query_own_cpu(si), 4),
+            "shares": frame.shares, "wall_s": round(frame.wall_s, 4),
+            "peak_rss_mib": round(peak_rss_mib(), 1)}
+
+
+def _reference_summary(frame: FrameResult, exact: FrameResult, parts, err) -> dict:
+    """Against the exact frame: times and speed-ups, angular error, disagreements, PSNR."""
+    si, sx = frame.stats, exact.stats
+    e = err[np.isfinite(err)]
+    img, ref = frame.color, exact.color
+    return {
+        "exact_object_only_cpu_s": round(sx["object_cpu_s"], 4),
+        "exact_total_cpu_s": round(sx["total_cpu_s"], 4),
+        "exact_object_only_wall_s": round(sx["object_wall_s"], 4),
+        "exact_total_wall_s": round(sx["total_wall_s"], 4),
+        "object_only_speedup": round(sx["object_cpu_s"] / max(si["object_cpu_s"], 1e-9), 3),
+        "total_speedup": round(sx["total_cpu_s"] / max(si["total_cpu_s"], 1e-9), 3),
+        "query_own_fraction_of_exact_object_only": round(
+            query_own_cpu(si) / max(sx["object_cpu_s"], 1e-9), 4),
+        "angle_error_deg_mean": round(float(e.mean()), 5) if len(e) else None,
+        "angle_error_deg_p99": round(float(np.percentile(e, 99)), 5) if len(e) else None,
+        "angle_error_deg_max": round(float(e.max()), 5) if len(e) else None,
+        "hit_disagreements": sum(p.hit_disagree for p in parts),
+        "null_disagreements": sum(p.null_disagree for p in parts),
+        "psnr_db": round(psnr(img, ref), 3),
+        "max_pixel_diff": round(float(np.abs(_clip(img) - _clip(ref)).max()), 5)}
 
 
 def query_own_cpu(stats: dict) -> float:
@@ -150,23 +130,8 @@ def query_own_cpu(stats: dict) -> float:
                and k[len("query_"):-len("_cpu_s")] not in TRACING_STAGES)
 
 
-def _sum(dicts):
-    out = {}
-    for d in dicts:
-        for k, v in d.items():
-            out[k] = out.get(k, 0) + v
-    return out
-
-
 def _clip(img):
     return np.clip(img, 0.0, 1.0)
-
-
-def disagreements(ri, rx) -> tuple[int, int]:
-    """(hit, null) disagreements of the answers ``ri`` with the exact results ``rx`` of the
-    same rays (ObjectRays): rays answered as hitting the object that miss it, or the other way
-    round; rays answered null (trapped inside) that leave it, or the other way round."""
-    return int(np.sum(ri.hit != rx.hit)), int(np.sum(ri.null != rx.null))
 
 
 def psnr(a, b) -> float:
@@ -195,6 +160,7 @@ def save_tree_render(res: RenderResult, folder) -> list:
     import json
     from pathlib import Path
 
+    from ..atomic import atomic_write_text
     from .image import write_float_image, write_png, write_png_u8
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -214,6 +180,6 @@ def save_tree_render(res: RenderResult, folder) -> list:
         put("angle_error.png", write_png_u8, error_image(res.masks["angle_error_deg"],
                                                            res.masks["traced"], res.masks["object"]))
     p = folder / "stats.json"
-    p.write_text(json.dumps(res.stats, indent=2, default=float) + "\n")
+    atomic_write_text(p, json.dumps(res.stats, indent=2, default=float) + "\n")
     out.append(p)
     return out

@@ -36,7 +36,7 @@ from .derive import derive
 from .dircube import CUBE, DOMAIN, N_SLOTS, U_AXIS, UV_AXES, V_AXIS, cube_to_dir
 from .interp import FAIL, UNIT_CORNERS, angle_between, cell_weights
 from .quadtree import CORNERS, Forest
-from .region import Region
+from .region import Region, check_object
 from .shardmerge import MergeBuffers, block_shifts, interleave
 from .tree import (BOUNDARY, PATH_CHANGE, SAMPLE_FIELDS, UNVERIFIED, BakeParams, PackedSamples,
                    RITree, Samples)
@@ -45,7 +45,7 @@ from .verify import MEASURE_MIRROR_RAYS, viewpoint_errors
 # The angle threshold (degrees) of the refinement rule (refine_rule): the paper's value.
 REFINE_ANGLE_DEG = 20.0
 # The baked-error tolerance (degrees) under which finest_rule counts traced rays: the
-# render-time default's value when the rule was made (stop 22).
+# render-time default's value when the rule was made (54f061c, 2026-12-04).
 FINEST_TOLERANCE_DEG = 2.0
 # The direction forest's per-node arrays a shard returns and the merge interleaves.
 _NODE_FIELDS = ("child", "corner", "level", "ix", "iy", "dir_err", "dir_flags")
@@ -297,6 +297,7 @@ def bake(st, params: BakeParams | None = None, region: Region | None = None, pro
     split further, up to that many extra levels (non-uniform viewpoint subdivision). The final
     tree's viewpoint-level errors are measured and stored (``vp_err``, ``vp_flags``)."""
     params = (params or BakeParams()).validate()
+    check_object(st)
     t0, c0 = time.perf_counter(), _cpu_seconds()
     refine = params.viewpoint_refine if region is not None and region.rays is not None else 0
     prog = _Progress(progress, 1 + refine, params.direction_depth, params.search_steps)
@@ -799,7 +800,7 @@ def bake_shard(st, params: BakeParams, task: dict) -> dict:
 
 def refine_rule():
     """The query rule whose traced rays split viewpoint cells in a refinement pass: the paper's,
-    with its 20-degree angle threshold, null rays traced (since stop 23; answered null before),
+    with its 20-degree angle threshold, null rays traced (since 527fbe9; answered null before),
     not the render-time default, which may change."""
     from .query import QueryOptions
     return QueryOptions(angle_deg=REFINE_ANGLE_DEG, max_error_deg=None, null_interp=False)

@@ -13,7 +13,7 @@ Layout of format version 2 (docs/tree-format.md; all integers little-endian):
                       that of the array's own (decoded) bytes
   trailer   40 bytes  b"RIRAYEND" + sha256 of every byte before the trailer
 
-Writes are atomic (temporary file beside the target, fsync, os.replace). Reads check the
+Writes are atomic (riray.atomic: temporary file beside the target, fsync, os.replace). Reads check the
 structure always (magic, version, header crc32, the array table, the file size) and, with
 ``verify``, every array's crc32 and the whole-file sha256, streaming in ``BLOCK`` byte blocks.
 Filtered arrays are encoded on up to ``filters.ENCODE_THREADS`` and decoded on up to
@@ -26,6 +26,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import struct
 import zlib
 import threading
@@ -35,6 +36,7 @@ from typing import BinaryIO
 
 import numpy as np
 
+from ..atomic import atomic_write
 from ..scene.model import SpecularObject
 from . import filters as F
 
@@ -53,7 +55,9 @@ MAX_DIMS = 32                           # numpy's limit on an array's dimensions
 MAX_RATIO = 1 << 16                     # a filtered array may claim at most this many times
                                         # its stored bytes (xz reaches about 7,000 on constant
                                         # data): a few stored bytes cannot ask for terabytes
-MAX_HEADER_BYTES = 256 << 20            # a larger header length is corruption, not a tree
+MAX_HEADER_BYTES = 1 << 20              # a larger header length is corruption, not a tree
+                                        # (a tree's header is about 5 KB)
+MAX_HEADER_DEPTH = 32                   # deepest nesting of the JSON header (a tree's: 3)
 # Dtypes a tree may hold (little-endian; bool and bytes have no byte order).
 DTYPES = frozenset(["|b1", "|i1", "|u1", "<i2", "<u2", "<i4", "<u4", "<i8", "<u8", "<f4", "<f8"])
 FINGERPRINT_TAG = b"riray-fingerprint-v1\x00"
@@ -232,32 +236,21 @@ def save_tree(path: str | os.PathLike, header: dict, arrays: dict[str, np.ndarra
     encoded before anything is written; ``cancel()`` turning true while the arrays are encoded
     (or Ctrl-C) stops within a few seconds (SaveCancelled), leaving ``path`` untouched;
     ``progress(fraction)`` follows the encoding (bytes of chunks done). The file
-    is written beside ``path`` under a temporary name, fsynced and moved into place with
-    os.replace: on any error or interrupt the temporary file is removed and an existing file at
-    ``path`` is untouched.
+    is written by riray.atomic.atomic_write (a temporary file beside ``path``, fsynced and moved
+    into place with os.replace): on any error or interrupt the temporary file is removed and an
+    existing file at ``path`` is untouched; an OSError is raised as atomic.WriteError, naming
+    ``path`` and the cause (disk full).
     """
     path = os.fspath(path)
     head, views = _prepare(path, header, arrays, filters, cancel, progress)
-    tmp = f"{path}.{os.urandom(6).hex()}.tmp"
-    f = open(tmp, "xb")
-    try:
-        with f:
-            sha = hashlib.sha256(head)
-            f.write(head)
-            _write_payload(f, sha, views)
-            f.write(_TRAILER.pack(END_MARK, sha.digest()))
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-    if os.name == "posix":                      # make the rename itself durable
-        fd = os.open(os.path.dirname(os.path.abspath(path)), os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+
+    def write(f: BinaryIO) -> None:
+        sha = hashlib.sha256(head)
+        f.write(head)
+        _write_payload(f, sha, views)
+        f.write(_TRAILER.pack(END_MARK, sha.digest()))
+
+    atomic_write(path, write)
 
 
 # --------------------------------------------------------------------------- reading
@@ -265,6 +258,17 @@ def _read_exact(f: BinaryIO, n: int) -> bytes | None:
     """Exactly n bytes, or None when the file ends first."""
     data = f.read(n)
     return data if len(data) == n else None
+
+
+_JSON_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"', re.S)
+
+
+def _nesting(body: bytes) -> int:
+    """Deepest bracket nesting of the JSON text ``body`` (its strings skipped), counted
+    without parsing it."""
+    b = np.frombuffer(_JSON_STRING.sub(b'""', body), np.uint8)
+    step = np.isin(b, (ord("["), ord("{"))).astype(np.int64) - np.isin(b, (ord("]"), ord("}")))
+    return int(np.cumsum(step).max(initial=0))
 
 
 def _entries(path: str, table, payload: int) -> list[_Entry]:
@@ -348,6 +352,9 @@ def _read_layout(path: str, f: BinaryIO) -> tuple[_Layout, bytes]:
                              f"{_PREAMBLE.size + header_len}")
     if zlib.crc32(body) != header_crc:
         raise TreeCacheError(f"{path}: corrupt: header checksum (crc32) mismatch")
+    if _nesting(body) > MAX_HEADER_DEPTH:
+        raise TreeCacheError(f"{path}: malformed header JSON: nested more than "
+                             f"{MAX_HEADER_DEPTH} levels deep")
     try:
         doc = json.loads(body.decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as exc:
@@ -412,8 +419,7 @@ def _scan(path: str, f: BinaryIO, layout: _Layout, head: bytes,
     return stored, mark == END_MARK and digest == sha.digest()
 
 
-def _decode_all(path: str, layout: _Layout, stored: dict, verify: bool,
-                writeable: bool) -> dict[str, np.ndarray]:
+def _decode_all(path: str, layout: _Layout, stored: dict, verify: bool) -> dict[str, np.ndarray]:
     """The filtered arrays decoded, on up to os.cpu_count() threads; their crc32 checked with
     ``verify``."""
     entries = sorted((e for e in layout.entries if e.filters), key=lambda e: -e.nbytes)
@@ -429,7 +435,6 @@ def _decode_all(path: str, layout: _Layout, stored: dict, verify: bool,
                                  "memory") from None
         if verify and zlib.crc32(arr.reshape(-1).view(np.uint8)) != e.crc32:
             raise TreeCacheError(f"{path}: corrupt: array {e.name!r} checksum (crc32) mismatch")
-        arr.flags.writeable = writeable
         return arr
 
     if not entries:
@@ -438,16 +443,19 @@ def _decode_all(path: str, layout: _Layout, stored: dict, verify: bool,
         return dict(zip((e.name for e in entries), pool.map(one, entries)))
 
 
-def load_tree(path: str | os.PathLike, *, mmap: bool = True, verify: bool = True,
-              expect_fingerprint: str | None = None) -> tuple[dict, dict[str, np.ndarray]]:
-    """Read a ``.rit`` file: (header, arrays) in the order they were saved.
+def load_tree(path: str | os.PathLike, *, verify: bool = True,
+              expect_fingerprint: str | None = None,
+              check=None) -> tuple[dict, dict[str, np.ndarray]]:
+    """Read a ``.rit`` file: (header, arrays) in the order they were saved, as writeable
+    in-memory arrays (the file is read, never memory-mapped: one truncated under a reader
+    is an error, not a SIGBUS).
 
-    mmap=True: raw arrays are read-only np.memmap views of the file (nothing is read into
-    memory); mmap=False: in-memory (writeable) copies. Filtered arrays are always decoded into
-    memory (read-only with mmap=True). verify=True streams the file once, checking each array's
-    crc32 and the whole-file sha256 (memory bounded by BLOCK plus the filtered arrays' stored
-    bytes). With expect_fingerprint, a tree whose header["fingerprint"] differs raises
-    StaleTreeError. Every problem raises TreeCacheError naming the file.
+    verify=True checks each array's crc32 and the whole-file sha256 as the file streams past
+    (memory: the arrays plus BLOCK plus the filtered arrays' stored bytes). With
+    expect_fingerprint, a tree whose header["fingerprint"] differs raises StaleTreeError.
+    ``check(header, table, file_bytes)``, with table {name: (dtype, shape)}, runs after the
+    structure is read and before any array is: a ValueError from it refuses the file. Every
+    problem raises TreeCacheError naming the file.
     """
     path = os.fspath(path)
     with open(path, "rb") as f:
@@ -456,20 +464,17 @@ def load_tree(path: str | os.PathLike, *, mmap: bool = True, verify: bool = True
         if expect_fingerprint is not None and have != expect_fingerprint:
             raise StaleTreeError(
                 f"{path}: stale tree: the object's geometry or material changed since the bake "
-                f"(tree fingerprint {have!r}, scene {expect_fingerprint!r}); re-bake the RI-Tree")
-        raw = [e for e in layout.entries if not e.filters]
-        if mmap:
-            stored, sha_ok = _scan(path, f, layout, head, None, verify) if verify else (None, True)
-            whole = np.memmap(f, dtype=np.uint8, mode="r")
-            if stored is None:
-                stored = {e.name: whole[layout.data_offset + e.offset:][:e.stored]
-                          for e in layout.entries if e.filters}
-            arrays = {e.name: whole[layout.data_offset + e.offset:][:e.nbytes]
-                      .view(e.dtype).reshape(e.shape) for e in raw}
-        else:
-            arrays = {e.name: np.empty(e.shape, e.dtype) for e in raw}
-            stored, sha_ok = _scan(path, f, layout, head, arrays, verify)
-    arrays.update(_decode_all(path, layout, stored, verify, writeable=not mmap))
+                f"(tree fingerprint {str(have)[:80]!r}, scene {expect_fingerprint!r}); re-bake "
+                "the RI-Tree")
+        if check is not None:
+            try:
+                check(layout.header, {e.name: (e.dtype, e.shape) for e in layout.entries},
+                      layout.file_bytes)
+            except ValueError as exc:
+                raise TreeCacheError(f"{path}: {exc}") from None
+        arrays = {e.name: np.empty(e.shape, e.dtype) for e in layout.entries if not e.filters}
+        stored, sha_ok = _scan(path, f, layout, head, arrays, verify)
+    arrays.update(_decode_all(path, layout, stored, verify))
     if not sha_ok:
         raise TreeCacheError(f"{path}: corrupt: whole-file sha256 mismatch (trailer, header "
                              "padding or padding between arrays)")

@@ -29,9 +29,10 @@ class ExtraAnswer:
     extrapolated: np.ndarray  # (g,) bool
 
 
-def extra_weights(tree, table, leaf, lx, ly, usable, pc, extrapolation) -> ExtraAnswer:
-    """Extra-sample weights for queries at cell-local (lx, ly) of leaves ``leaf`` (n,) whose
-    usable corners ``usable`` (n, 4) (class ``pc`` (n,)) were too few for the cell itself."""
+def extra_weights(tree, leaf, lx, ly, usable, pc, extrapolation) -> ExtraAnswer:
+    """Extra-sample weights for queries at cell-local (lx, ly) of leaves ``leaf`` (n,) of
+    ``tree`` whose usable corners ``usable`` (n, 4) (class ``pc`` (n,)) were too few for the
+    cell itself."""
     n0 = len(leaf)
     empty = ExtraAnswer(np.zeros(0, np.int64), np.zeros((0, 6)), np.zeros((0, 2), np.int64),
                         np.zeros(0, bool))
@@ -47,6 +48,7 @@ def extra_weights(tree, table, leaf, lx, ly, usable, pc, extrapolation) -> Extra
     exi = tree.ex_ids[pos]
     exp = tree.ex_pos[pos].astype(np.float64)
     us = usable[rows]
+    table = tree.table
     ex_use = (table.cls[exi] == pc[rows, None]) & ~table.null[exi]
     n = len(rows)
     r = np.arange(n)

@@ -10,8 +10,8 @@ A stored array may pass through a chain of filters, always in this order:
            filtered array, concatenated (as a concatenated .xz file is), so that one array's
            chunks compress on several threads; each stream's header names its dictionary;
            every stream but the last decodes to at least ``MIN_STREAM`` bytes
-A chain is any subsequence of ``ORDER``; the empty chain stores the raw bytes (and only those
-can be memory-mapped). Decoding undoes the chain in reverse order.
+A chain is any subsequence of ``ORDER``; the empty chain stores the raw bytes. Decoding undoes
+the chain in reverse order.
 """
 
 from __future__ import annotations

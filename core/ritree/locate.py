@@ -73,6 +73,11 @@ def locate(tree, o, d, tmax):
     cf, u, v = dir_to_cube(d)
     slot = SLOT.take(face * 6 + cf)                       # SLOT[face, cf], -1: impossible
     ok = (vnode >= 0) & all_last(vps >= 0) & (slot >= 0)
+    if not ok.any():         # no ray meets a baked viewpoint cell (a tree without viewpoints)
+        nothing = np.zeros((0, 4))
+        return Located(ray=q[:0], vnode=vnode[:0], alpha=alpha[:0], beta=beta[:0],
+                       leaf=nothing.astype(np.int64), lx=nothing, ly=nothing), \
+            np.concatenate([np.flatnonzero(inside), q])
     slot = np.maximum(slot, 0)
     trees = np.where(ok[:, None], vps * N_SLOTS + slot[:, None], 0)                # (m, 4)
     # the four direction trees of a viewpoint cell cover the same slot domain, DOMAIN[face,
@@ -84,7 +89,8 @@ def locate(tree, o, d, tmax):
     ok &= all_last(leaf >= 0)
     # leaves inside the baked rectangle with every corner sampled answer all their rays;
     # elsewhere each ray is checked (against its cell's four baked rectangles at once)
-    check = np.flatnonzero(ok & ~all_last(tree.leaf_ok.take(np.maximum(leaf, 0))))
+    good = np.flatnonzero(ok)
+    check = good[~all_last(tree.leaf_ok.take(leaf[good]))]
     if len(check):
         rect = tree.cell_rect.reshape(-1, 4).take(vnode[check] * N_SLOTS + slot[check], axis=0)
         uc, vc = u[check], v[check]

@@ -140,12 +140,13 @@ class Forest:
                 f"{prefix}.child": self.child, f"{prefix}.leaf_corner": self.corner[self.child < 0]}
 
     @classmethod
-    def from_arrays(cls, arrays, prefix: str) -> "Forest":
+    def from_arrays(cls, arrays, prefix: str, max_level: int | None = None) -> "Forest":
         """``arrays``' forest (Forest.arrays): levels and cell indices walked down from the
         roots; an inner node's corner j is its child j's corner j, gathered up from the
         leaves (the same grid point: the bake keys direction samples on it; inner viewpoint
         cells, which the bake leaves without viewpoints, get them too, and nothing reads
-        them). ValueError where the links are not a forest of quadtrees."""
+        them). ValueError where the links are not a forest of quadtrees (or, with
+        ``max_level``, one deeper than that)."""
         domain, root, child, leaf_corner = (np.asarray(arrays[f"{prefix}.{k}"]) for k in
                                             ("domain", "root", "child", "leaf_corner"))
         k = len(child)
@@ -163,6 +164,8 @@ class Forest:
         while len(nodes):
             if seen[nodes].any() or len(np.unique(nodes)) < len(nodes):
                 raise ValueError(f"{prefix} forest: a node is reached twice")
+            if max_level is not None and len(levels) > max_level:
+                raise ValueError(f"{prefix} forest: deeper than {max_level} levels")
             seen[nodes] = True
             levels.append(nodes)
             inner = nodes[child[nodes] >= 0]
@@ -199,7 +202,8 @@ class DenseLocator:
         self.level, side = level, 1 << level
         self.offset = -np.ones(len(forest.root), np.int64)
         self.offset[built] = np.arange(len(built)) * side * side
-        self.table = np.full(len(built) * side * side, -1, np.int32)
+        # at least one entry: a lookup in an unbuilt tree reads one (and ignores it)
+        self.table = np.full(max(len(built) * side * side, 1), -1, np.int32)
         tree = forest.tree_of_nodes()
         for lv in range(level + 1):
             nodes = np.flatnonzero((forest.level == lv) & ((forest.child < 0) | (lv == level))

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..render.camera import camera_rays
+from ..scene.camera import camera_rays
 from .dircube import N_SLOTS, SLOT, U_AXIS, V_AXIS, dir_to_cube
 from .locate import entry_points
 
@@ -24,13 +24,15 @@ class Region:
     (u0, u1, v0, v1) part of each that the cameras' rays use. ``rays`` = (origins, dirs, tmax)
     of the camera rays that reach the object's box, for refinement. ``cameras``: the (Camera,
     width, height) triples, whose rays verify the viewpoint-level interpolation. None:
-    everything."""
+    everything. ``unseen``: the names of the cameras left out because none of their rays
+    reaches the object's box."""
 
-    def __init__(self, cells=None, levels=None, rays=None, cameras=None):
+    def __init__(self, cells=None, levels=None, rays=None, cameras=None, unseen=()):
         self.cells = cells
         self.levels = levels
         self.rays = rays
         self.cameras = cameras
+        self.unseen = list(unseen)
 
     @property
     def tree_keys(self):
@@ -55,12 +57,23 @@ class _Box:
         self.box_lo, self.box_hi = lo, hi
 
 
+def check_object(st) -> None:
+    """ValueError unless the object of ``st`` (a SceneTracer) has a bounding box of positive
+    size (a tree of a point has nothing to sample; a flat object is fine)."""
+    if not np.any(st.tracer.hi > st.tracer.lo):
+        raise ValueError(f"the object {st.scene.object.name!r} has a bounding box of size zero: "
+                         "nothing to bake")
+
+
 def region_for_cameras(st, params, cameras, width, height, margin: int = 1) -> Region:
     """The Region that the rays of ``cameras`` (a list of scene Cameras, e.g. one per frame of
     an animation) at ``width`` x ``height`` pixels need: the viewpoint cells they enter the box
     through (with ``margin`` cells around), and, for every viewpoint level up to the refinement
     limit, the hemicube slots and direction rectangles (widened by ``margin`` cells of the
-    finest direction grid) used around each viewpoint."""
+    finest direction grid) used around each viewpoint. Cameras none of whose rays reach the
+    object's box (before the environment) are left out (``Region.unseen``); ValueError naming
+    the first when that leaves none, or when the object has no size."""
+    check_object(st)
     diag = st.tracer.diag
     pad = params.pad * diag + 1e-12
     box = _Box(st.tracer.lo - pad, st.tracer.hi + pad)
@@ -71,6 +84,7 @@ def region_for_cameras(st, params, cameras, width, height, margin: int = 1) -> R
     cells = np.zeros((6, n, n), bool)
     rec = []                                    # (face, fx, fy, slot, u, v) per ray
     rays = []
+    seen, unseen = [], []
     for cam in cameras:
         o, d = camera_rays(cam, width, height)
         t_in, face, x, y, inside = entry_points(box, o, d)
@@ -81,6 +95,10 @@ def region_for_cameras(st, params, cameras, width, height, margin: int = 1) -> R
         sl = SLOT[face, cf]
         env_t = st.env.hit_distance(o, d)
         ok = np.isfinite(t_in) & (sl >= 0) & (t_in < env_t)
+        if not ok.any():
+            unseen.append(cam.name)
+            continue
+        seen.append(cam)
         rays.append((o[ok], d[ok], env_t[ok]))
         face, x, y, u, v, sl = face[ok], x[ok], y[ok], u[ok], v[ok], sl[ok]
         axis = face // 2
@@ -88,6 +106,10 @@ def region_for_cameras(st, params, cameras, width, height, margin: int = 1) -> R
         fx = np.clip((x - box.box_lo[ua]) / (box.box_hi[ua] - box.box_lo[ua]), 0.0, 1.0)
         fy = np.clip((y - box.box_lo[va]) / (box.box_hi[va] - box.box_lo[va]), 0.0, 1.0)
         rec.append((face, fx, fy, sl, u, v))
+    if not seen:
+        raise ValueError(f"camera {unseen[0]!r} does not see the object "
+                         f"{st.scene.object.name!r} (none of its {width} x {height} pixel rays "
+                         "reaches the object's bounding box); nothing to bake")
     face, fx, fy, sl, u, v = (np.concatenate([r[k] for r in rec]) for k in range(6))
     widen = margin * 2.0 / (1 << M)           # finest direction cells are at most 2 / 2^M wide
     levels = {}
@@ -122,4 +144,4 @@ def region_for_cameras(st, params, cameras, width, height, margin: int = 1) -> R
         levels[level] = (uk, rects + np.array([-widen, widen, -widen, widen]))
     o, d, t = (np.concatenate([r[k] for r in rays]) for k in range(3))
     return Region(cells=cells, levels=levels, rays=(o, d, t),
-                  cameras=[(cam, width, height) for cam in cameras])
+                  cameras=[(cam, width, height) for cam in seen], unseen=unseen)

@@ -11,12 +11,14 @@ traced). Samples store f's answer for the corner rays: output ray, first hit poi
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+import math
+from dataclasses import asdict, dataclass, field, fields
 from functools import cached_property
 
 import numpy as np
 
 from ..trace.objectfn import one_reflection_hash
+from .answers import COL
 from .cache import TreeCacheError, fingerprint, load_tree, save_tree
 from .codec import (decode_params, decode_points, decode_unit_vectors, encode_params, encode_points,
                     encode_unit_vectors)
@@ -286,7 +288,7 @@ class SampleTable:
     """Every sample decoded once, for rendering. ``vals`` (S, 14) float32 holds out_o, out_d,
     point, normal (float32 keeps interpolation within 1e-7 rad of float64: far below the cache's
     6.5e-5 rad octahedral quantization) and the first hit's normalized patch parameters uv
-    (columns 12-13); ``cls`` the sample's class (-1: misses the object)."""
+    (columns named by answers.COL); ``cls`` the sample's class (-1: misses the object)."""
 
     vals: np.ndarray        # (S, 14) float32
     cls: np.ndarray         # (S,) int32
@@ -298,10 +300,10 @@ class SampleTable:
 
     @classmethod
     def of(cls, samples, class_of) -> "SampleTable":
-        vals = np.empty((len(samples), 14), np.float32)
-        for c, k in enumerate(("out_o", "out_d", "point", "normal")):
-            vals[:, 3 * c:3 * c + 3] = getattr(samples, k)
-        vals[:, 12:14] = samples.uv
+        vals = np.empty((len(samples), COL.N), np.float32)
+        for k, col in (("out_o", COL.OUT_O), ("out_d", COL.OUT_D), ("point", COL.POINT),
+                       ("normal", COL.NORMAL), ("uv", COL.UV)):
+            vals[:, col] = getattr(samples, k)
         patch = np.asarray(samples.patch, np.int32)
         klass = np.where(patch >= 0, np.asarray(class_of)[np.maximum(patch, 0)], -1)
         null = np.asarray(samples.null, bool)
@@ -385,7 +387,7 @@ class RITree:
             sc = f.cube_scale(self.ex_node, tree[self.ex_node], pos[..., 0], pos[..., 1])
             scale[self.ex_ids] = sc
         vals = self.table.vals.copy()
-        vals[:, 3:6] *= scale[:, None].astype(np.float32)
+        vals[:, COL.OUT_D] *= scale[:, None].astype(np.float32)
         return vals
 
     @cached_property
@@ -425,11 +427,13 @@ class RITree:
         viewpoints' baked rectangles (``dir_rect``) of that slot (empty where a corner has no
         viewpoint), so a query direction inside it is inside all four."""
         vps = self.vp_forest.corner
-        trees = np.maximum(vps, 0)[:, :, None] * 5 + np.arange(5)              # (Kv, 4, 5)
-        r = self.dir_rect[trees]                                               # (Kv, 4, 5, 4)
-        out = np.stack([r[..., 0].max(axis=1), r[..., 1].min(axis=1),
-                        r[..., 2].max(axis=1), r[..., 3].min(axis=1)], axis=-1)
-        out[np.any(vps < 0, axis=1)] = (np.inf, -np.inf, np.inf, -np.inf)
+        out = np.empty((len(vps), 5, 4))
+        out[:] = (np.inf, -np.inf, np.inf, -np.inf)
+        full = np.flatnonzero(np.all(vps >= 0, axis=1))       # none in a tree without viewpoints
+        trees = vps[full][:, :, None] * 5 + np.arange(5)                      # (n, 4, 5)
+        r = self.dir_rect[trees]                                               # (n, 4, 5, 4)
+        out[full] = np.stack([r[..., 0].max(axis=1), r[..., 1].min(axis=1),
+                              r[..., 2].max(axis=1), r[..., 3].min(axis=1)], axis=-1)
         return out
 
     def sample_class(self, ids: np.ndarray) -> np.ndarray:
@@ -485,16 +489,18 @@ class RITree:
 
     @classmethod
     def from_parts(cls, header: dict, arrays: dict) -> "RITree":
-        if header.get("layout") != TREE_LAYOUT:
-            raise TreeCacheError(f"RI-Tree layout {header.get('layout')!r} is not supported: "
-                                 f"this riray reads layout {TREE_LAYOUT}; re-bake the tree")
-        missing = [k for k in cls._ARRAYS if k not in arrays]
-        if missing:
-            raise TreeCacheError(f"RI-Tree file lacks arrays {missing}; re-bake the tree")
-        a = {k: np.asarray(v) for k, v in arrays.items()}   # plain views of the memory map
-        lo, hi = np.asarray(a["box_lo"]), np.asarray(a["box_hi"])
+        """The tree of a cache file's header and arrays; TreeCacheError (saying to re-bake)
+        unless they are a layout-5 tree: header fields, dtypes and shapes (``check_file``),
+        then every index against what it indexes, before any array is used."""
+        a = {k: np.asarray(v) for k, v in arrays.items()}
+        check_file(header, {k: (v.dtype, v.shape) for k, v in a.items()})
+        lo, hi = a["box_lo"], a["box_hi"]
         try:
-            vp_forest, dir_forest = (Forest.from_arrays(a, f) for f in ("vp", "dir"))
+            _check_values(a, header["params"])
+            vp_forest, dir_forest = (Forest.from_arrays(a, f, max_level) for f, max_level in
+                                     (("vp", header["params"]["viewpoint_depth"]
+                                       + header["params"]["viewpoint_refine"]),
+                                      ("dir", header["params"]["direction_depth"])))
             samples = PackedSamples.from_stored({k: a[f"s.{k}"] for k in PackedSamples.STORED},
                                                 lo, hi)
         except ValueError as e:
@@ -502,14 +508,134 @@ class RITree:
         ex_pos = a["ex_pos"]
         if ex_pos.dtype == np.uint16:
             ex_pos = (ex_pos / np.float32(EX_POS_SCALE)).astype(np.float32)
-        return cls(params=BakeParams(**header["params"]).validate(), box_lo=a["box_lo"],
-                   box_hi=a["box_hi"], diag=float(header["diag"]), class_of=a["class_of"],
+        return cls(params=BakeParams(**header["params"]), box_lo=lo,
+                   box_hi=hi, diag=float(header["diag"]), class_of=a["class_of"],
                    vp_forest=vp_forest, vp_pos=a["vp_pos"], vp_face=a["vp_face"],
                    dir_forest=dir_forest, dir_rect=a["dir_rect"], samples=samples,
                    ex_node=a["ex_node"], ex_kind=a["ex_kind"], ex_ids=a["ex_ids"],
                    ex_pos=ex_pos, ex_corner=a["ex_corner"], dir_err=a["dir_err"],
                    dir_flags=a["dir_flags"], vp_err=a["vp_err"], vp_flags=a["vp_flags"],
                    meta={k: v for k, v in header.items() if k not in ("layout", "params", "diag")})
+
+
+# A file's arrays may claim at most this many times the file's bytes in all (or
+# MIN_EXPANSION_BYTES, whichever is larger): the sample scenes' trees claim 4-8 times theirs
+# (camera and full trees of glass_sphere), so a small crafted file cannot claim gigabytes.
+MAX_EXPANSION = 32
+MIN_EXPANSION_BYTES = 64 << 20
+_IDS = ("<i4", "<i8")
+_INTS = ("|i1", "<i2", "<i4", "<i8")
+
+
+def _file_table(c: dict) -> dict:
+    """Array name -> (allowed dtype strings, shape) of a layout-5 tree with counts ``c``."""
+    V, K, Kv, S, H, E = c["V"], c["K"], c["Kv"], c["S"], c["H"], c["E"]
+    return {
+        "box_lo": (("<f8",), (3,)), "box_hi": (("<f8",), (3,)), "class_of": (_INTS, (c["P"],)),
+        "vp_pos": (("<f8",), (V, 3)), "vp_face": (_INTS, (V,)), "dir_rect": (("<f8",), (5 * V, 4)),
+        "ex_node": (_IDS, (E,)), "ex_kind": (("|i1",), (E,)), "ex_ids": (_IDS, (E, 4)),
+        "ex_pos": (("<u2", "<f4"), (E, 4, 2)), "ex_corner": (("|i1",), (E, 4)),
+        "dir_err": (("<f4",), (K,)), "dir_flags": (("|u1",), (K,)),
+        "vp_err": (("<f4",), (Kv,)), "vp_flags": (("|u1",), (Kv,)),
+        "vp.domain": (("<f8",), (6, 4)), "vp.root": (_IDS, (6,)), "vp.child": (_IDS, (Kv,)),
+        "vp.leaf_corner": (_IDS, (c["Lv"], 4)),
+        "dir.domain": (("<f8",), (5 * V, 4)), "dir.root": (_IDS, (5 * V,)),
+        "dir.child": (_IDS, (K,)), "dir.leaf_corner": (_IDS, (c["L"], 4)),
+        "s.patch": (("<i2", "<i4"), (S,)), "s.null_bits": (("|u1",), ((S + 7) // 8,)),
+        "s.tree_table": (("<u4",), (c["U"],)), "s.tree_code": (("|u1", "<u2", "<u4"), (S,)),
+        "s.geom": (("|u1",), (H,)), "s.out_d_q": (("<i2",), (H, 2)), "s.uv_q": (("<u2",), (H, 2)),
+        "s.point_q": (("<u2",), (c["Hp"], 3)), "s.normal_q": (("<i2",), (c["Hp"], 2)),
+        "s.out_o_q": (("<u2",), (c["Ho"], 3))}
+
+
+def check_file(header: dict, table: dict, file_bytes: int | None = None) -> None:
+    """TreeCacheError (saying to re-bake) unless ``header`` and ``table`` ({name: (dtype,
+    shape)}, as cache.load_tree's ``check`` hears them before reading any array) are a
+    layout-5 tree's: the header fields the reader uses (type and range), exactly the tree's
+    arrays, each of its dtype and of the shape the tree's counts give, the counts agreeing
+    (a forest of quadtrees, samples and hits) and, with ``file_bytes``, the arrays claiming
+    at most MAX_EXPANSION times the file's bytes."""
+    def bad(msg):
+        return TreeCacheError(f"RI-Tree file is inconsistent ({msg}); re-bake the tree")
+
+    if header.get("layout") != TREE_LAYOUT:
+        raise TreeCacheError(f"RI-Tree layout {repr(header.get('layout'))[:40]} is not "
+                             f"supported: this riray reads layout {TREE_LAYOUT}; re-bake the tree")
+    params, diag = header.get("params"), header.get("diag")
+    kinds = {f.name: f.type for f in fields(BakeParams)}
+    if not isinstance(params, dict) or set(params) != set(kinds) or any(
+            type(v) is not int and (kinds[k] != "float" or type(v) is not float)
+            for k, v in params.items()):
+        raise bad(f"header 'params' must hold exactly the numbers {sorted(kinds)}")
+    try:
+        BakeParams(**params).validate()
+    except ValueError as e:
+        raise bad(str(e)) from None
+    if type(diag) not in (int, float) or not 0 < diag < float("inf"):
+        raise bad("header 'diag' must be a positive finite number")
+    missing = sorted(set(RITree._ARRAYS) - set(table))
+    unknown = sorted(set(table) - set(RITree._ARRAYS))
+    if missing or unknown:
+        raise bad(f"arrays {missing} missing" if missing else f"unknown arrays {unknown[:5]}")
+
+    def n(name, axis=0):
+        shape = table[name][1]
+        return shape[axis] if len(shape) > axis else -1
+
+    c = {"V": n("vp_pos"), "K": n("dir.child"), "Kv": n("vp.child"), "L": n("dir.leaf_corner"),
+         "Lv": n("vp.leaf_corner"), "S": n("s.patch"), "H": n("s.geom"), "E": n("ex_node"),
+         "U": n("s.tree_table"), "P": n("class_of"), "Hp": n("s.point_q"), "Ho": n("s.out_o_q")}
+    for name, (dtypes, shape) in _file_table(c).items():
+        dtype, got = table[name]
+        if np.dtype(dtype).str not in dtypes or tuple(got) != shape:
+            raise bad(f"array {name!r} is {np.dtype(dtype).str} {list(got)}, expected "
+                      f"{'/'.join(dtypes)} {list(shape)}")
+    for forest, trees, k, leaves in (("vp", 6, c["Kv"], c["Lv"]),
+                                     ("dir", 5 * c["V"], c["K"], c["L"])):
+        if not (leaves <= k and 0 <= k - 4 * (k - leaves) <= trees):
+            raise bad(f"{forest} forest: {k} nodes with {leaves} leaves are not quadtrees of "
+                      f"{trees} roots")
+    if not (c["Hp"] <= c["H"] and c["Ho"] <= c["H"] <= c["S"] and c["U"] <= c["S"]
+            and (c["U"] > 0 or c["S"] == 0)):
+        raise bad("sample, hit and ray-tree hash counts disagree")
+    claimed = sum(math.prod(shape) * np.dtype(dtype).itemsize for dtype, shape in table.values())
+    if file_bytes is not None and claimed > max(MAX_EXPANSION * file_bytes, MIN_EXPANSION_BYTES):
+        raise bad(f"its arrays claim {claimed} bytes, more than {MAX_EXPANSION} times the "
+                  f"file's {file_bytes}")
+
+
+def _check_values(a: dict, params: dict) -> None:
+    """ValueError unless every id in ``a`` (a layout-5 tree's arrays, ``check_file``'s
+    shapes) lies within what it indexes and the geometry is finite."""
+    S, K, V = len(a["s.patch"]), len(a["dir.child"]), len(a["vp_pos"])
+
+    def within(name, lo, hi):
+        x = a[name]
+        if x.size and (x.min() < lo or x.max() >= hi):
+            raise ValueError(f"{name} holds values outside {lo}..{hi - 1}")
+
+    within("vp.leaf_corner", -1, V)
+    within("dir.leaf_corner", -1, S)
+    within("vp_face", 0, 6)
+    within("s.patch", -1, len(a["class_of"]))
+    within("class_of", 0, 1 << 31)
+    within("ex_node", 0, K)
+    within("ex_ids", 0, S)
+    within("ex_kind", 1, 3)
+    within("ex_corner", -1, 4)
+    ex_node = a["ex_node"]
+    if np.any(np.diff(ex_node) <= 0) or np.any(a["dir.child"][ex_node] >= 0):
+        raise ValueError("ex_node is not a sorted list of distinct leaves")
+    pos = a["ex_pos"]
+    if pos.size and not (0 <= pos.min() and pos.max() <= (EX_POS_SCALE if pos.dtype == np.uint16
+                                                          else 1)):
+        raise ValueError("ex_pos holds positions outside the cell")
+    lo, hi = a["box_lo"], a["box_hi"]
+    dom = np.concatenate([a["vp.domain"], a["dir.domain"]])
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo < hi)
+            and np.all(np.isfinite(a["vp_pos"])) and np.all(np.isfinite(dom))
+            and np.all(dom[:, 1] > dom[:, 0]) and np.all(dom[:, 3] > dom[:, 2])):
+        raise ValueError("box, viewpoints or tree domains are not finite boxes")
 
 
 def _ids(a: np.ndarray) -> np.ndarray:
@@ -549,9 +675,18 @@ def save(tree: RITree, path, header_extra: dict | None = None, cancel=None,
               cancel, progress)
 
 
-def load(path, scene=None, mmap: bool = True) -> RITree:
-    """Read a .rit cache file. With ``scene``, refuse a tree baked for another geometry or
-    material of the scene's object (StaleTreeError)."""
+def load(path, scene=None) -> RITree:
+    """Read a .rit cache file (header and array table checked before any array is read:
+    ``check_file``). With ``scene``, refuse a tree baked for another geometry or material of
+    the scene's object (StaleTreeError) or for other patch classes."""
     expect = None if scene is None else fingerprint(scene.object, scene.render.max_events)
-    header, arrays = load_tree(path, mmap=mmap, expect_fingerprint=expect)
-    return RITree.from_parts(header, arrays)
+    header, arrays = load_tree(path, expect_fingerprint=expect, check=check_file)
+    try:
+        tree = RITree.from_parts(header, arrays)
+    except TreeCacheError as e:
+        raise TreeCacheError(f"{path}: {e}") from None
+    if scene is not None and tree.class_of.tolist() != [p.class_id for p in
+                                                        scene.object.patches]:
+        raise TreeCacheError(f"{path}: the RI-Tree's patch classes are not its object's; "
+                             "re-bake the tree")
+    return tree

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..render.camera import pixel_rays, project_points
+from ..scene.camera import pixel_rays, project_points
 from .dircube import UV_AXES
 from .interp import angle_between
 from .locate import entry_points

@@ -12,19 +12,25 @@ from __future__ import annotations
 import difflib
 import json
 import os
+import sys
 
 import numpy as np
 
-from ..geometry.knots import GeometryError, check_surface
+from ..geometry.knots import MAX_DEGREE, GeometryError, check_surface
 from ..geometry.nurbs import NurbsSurface
-from ..render.image import ImageError, atomic_write, read_float_image, read_png, read_png_samples
+from ..render.image import (MAX_IMAGE_SIDE, ImageError, atomic_write, read_float_image, read_png,
+                            read_png_samples, read_regular)
 from .graph import GraphError, graph_from_dict, graph_to_dict
 from .model import (Camera, Light, Material, Mesh, ObjectMaterial, Patch, RenderSettings, Scene,
                     SpecularObject, Texture, World)
 
 FORMAT = "riray-scene"
 VERSION = 1
-MAX_IMAGE_SIDE = 16384
+# Largest scene file read, bytes: JSON parses to several times its size in Python objects.
+MAX_SCENE_BYTES = 1 << 28
+# Most surface events per ray (render.max_events): each is one intersection pass over the rays
+# still bouncing, so a ray trapped in the object costs max_events passes.
+MAX_EVENTS = 1000
 RIGID_TOL = 1e-6       # max |R^T R - I| for a camera rotation (dimensionless)
 # Magnitudes (docs/scene-format.md, "Supported range"). Any number: products of a few stay far
 # from float overflow (shading multiplies colours, powers, strengths). Positions (m): the
@@ -244,25 +250,38 @@ class _Images:
             ext = os.path.splitext(full)[1].lower()
             if ext not in (".png", ".npy"):
                 _fail(path, f"unsupported image type {ext!r} (use .png or .npy)")
-            if not os.path.isfile(full):
+            if not os.path.exists(full):
                 _fail(path, f"image file not found: {full}")
             try:
-                if key[1]:
-                    samples, maxcode = read_png_samples(full)
-                    img = samples[:, :, :3] if samples.shape[2] >= 3 else \
-                        np.repeat(samples[:, :, :1], 3, axis=2)
-                    img = img.astype(np.float64) / maxcode
-                else:
-                    img = read_png(full) if ext == ".png" else read_float_image(full)
+                img = _read_image(full, key[1])
             except ImageError as e:
                 _fail(path, str(e))
-            if max(img.shape[:2]) > MAX_IMAGE_SIDE:
-                _fail(path, f"image larger than {MAX_IMAGE_SIDE} pixels on a side "
-                            f"({img.shape[:2]})")
-            if not np.isfinite(img).all():
-                _fail(path, f"image {full} contains NaN/inf")
+            except OSError as e:
+                _fail(path, f"cannot read {full} ({e.strerror})")
+            _check_radiance(img, full, path)
             self.cache[key] = img
         return self.cache[key]
+
+
+def _read_image(full: str, encoded: bool) -> np.ndarray:
+    """(H, W, 3) float64 pixels of a .png or .npy file: linear, or with ``encoded`` (a PNG) its
+    sRGB-encoded samples in [0, 1]. Sizes are checked from the headers before decoding."""
+    if encoded:
+        samples, maxcode = read_png_samples(full)
+        img = samples[:, :, :3] if samples.shape[2] >= 3 else \
+            np.repeat(samples[:, :, :1], 3, axis=2)
+        return img.astype(np.float64) / maxcode
+    return read_png(full) if full.lower().endswith(".png") else read_float_image(full)
+
+
+def _check_radiance(img: np.ndarray, full: str, path: str) -> None:
+    """Image pixels are radiance (or reflectance): finite and >= 0."""
+    if not np.isfinite(img).all():
+        _fail(path, f"image {full} contains NaN/inf")
+    if (img < 0).any():
+        i, j, c = (int(x) for x in np.argwhere(img < 0)[0])
+        _fail(path, f"image {full} has negative values ({float(img[i, j, c])!r} at row {i} "
+                    f"column {j} channel {c}): pixels are radiance, which is >= 0")
 
 
 def _texture(v, path: str, images: _Images) -> Texture:
@@ -406,7 +425,7 @@ def _patch(v, path: str) -> Patch:
                    "points"), ("weights",), " for a nurbs patch")
     name = _string(v["name"], _at(path, "name"))
     class_id = _integer(v["class_id"], _at(path, "class_id"), 0, MAX_CLASS_ID)
-    deg = {d: _integer(v[f"degree_{d}"], _at(path, f"degree_{d}"), lo=1) for d in "uv"}
+    deg = {d: _integer(v[f"degree_{d}"], _at(path, f"degree_{d}"), 1, MAX_DEGREE) for d in "uv"}
     pts = _coords(v["points"], _at(path, "points"), (None, None, 3))
     counts = {"u": pts.shape[0], "v": pts.shape[1]}
     knots = {}
@@ -599,7 +618,8 @@ def _parse(d, base_dir: str | None, load_images: bool) -> Scene:
     r = _obj(d.get("render", {}), "render", (), ("width", "height", "max_events"))
     render.width = _integer(r.get("width", render.width), "render.width", 1, MAX_IMAGE_SIDE)
     render.height = _integer(r.get("height", render.height), "render.height", 1, MAX_IMAGE_SIDE)
-    render.max_events = _integer(r.get("max_events", render.max_events), "render.max_events", lo=1)
+    render.max_events = _integer(r.get("max_events", render.max_events), "render.max_events", 1,
+                                 MAX_EVENTS)
 
     mats = [_material(m, _at("materials", i), images)
             for i, m in enumerate(_list(d.get("materials", []), "materials"))]
@@ -635,25 +655,60 @@ def scene_from_dict(d: dict, base_dir: str | os.PathLike | None = None) -> Scene
 
 
 def _no_duplicates(pairs):
-    keys = [k for k, _ in pairs]
-    dup = {k for k in keys if keys.count(k) > 1}
-    if dup:
-        raise SceneError(f"duplicate key {sorted(dup)[0]!r} in a JSON object")
-    return dict(pairs)
+    d = dict(pairs)
+    if len(d) != len(pairs):                # linear time: a set, not a count per key
+        seen = set()
+        for k, _ in pairs:
+            if k in seen:
+                raise SceneError(f"duplicate key {k!r} in a JSON object")
+            seen.add(k)
+    return d
 
 
-def load_scene(path: str | os.PathLike) -> Scene:
-    """Read, validate and build a scene file; images load relative to the file's folder."""
-    path = os.fspath(path)
-    with open(path, "rb") as f:
-        data = f.read()
+class _LongInt:
+    """Stands for an integer literal longer than Python converts to int
+    (sys.get_int_max_str_digits) while the scene is parsed again to find where it is."""
+
+    def __init__(self, digits: int):
+        self.digits = digits
+
+
+def _long_int_path(text: str) -> str:
+    """The JSON path of the first integer literal in ``text`` too long to convert, and its size."""
+    limit = sys.get_int_max_str_digits()
+    unknown = f"an integer of more than {limit} digits is out of range"
+
+    def parse_int(t: str):
+        digits = len(t.lstrip("-"))
+        return _LongInt(digits) if digits > limit else 0
+
+    try:
+        d = json.loads(text, parse_int=parse_int)
+    except (ValueError, RecursionError):
+        return unknown
+    stack = [(d, "")]
+    while stack:
+        v, path = stack.pop()
+        if isinstance(v, _LongInt):
+            return f"{path or 'top level'}: integer of {v.digits} digits is out of range"
+        items = v.items() if isinstance(v, dict) else enumerate(v) if isinstance(v, list) else ()
+        stack.extend((x, _at(path, k)) for k, x in reversed(list(items)))
+    return unknown
+
+
+def _read_json(path: str):
+    """The parsed JSON of the scene file ``path`` (a regular file of at most MAX_SCENE_BYTES)."""
+    try:
+        data = read_regular(path, MAX_SCENE_BYTES)
+    except ValueError as e:
+        raise SceneError(str(e)) from None
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as e:
         raise SceneError(f"{path}: not UTF-8 text (byte 0x{data[e.start]:02x} at offset "
                          f"{e.start}); scene files are UTF-8 JSON") from None
     try:
-        d = json.loads(text, object_pairs_hook=_no_duplicates)
+        return json.loads(text, object_pairs_hook=_no_duplicates)
     except json.JSONDecodeError as e:
         raise SceneError(f"{path}: invalid JSON at line {e.lineno} column {e.colno}: "
                          f"{e.msg}") from None
@@ -662,7 +717,14 @@ def load_scene(path: str | os.PathLike) -> Scene:
                          "levels)") from None
     except SceneError as e:                 # a duplicate key
         raise SceneError(f"{path}: {e}") from None
-    return scene_from_dict(d, os.path.dirname(os.path.abspath(path)))
+    except ValueError:                      # an integer too long to convert
+        raise SceneError(f"{path}: {_long_int_path(text)}") from None
+
+
+def load_scene(path: str | os.PathLike) -> Scene:
+    """Read, validate and build a scene file; images load relative to the file's folder."""
+    path = os.fspath(path)
+    return scene_from_dict(_read_json(path), os.path.dirname(os.path.abspath(path)))
 
 
 # --------------------------------------------------------------------------- writing

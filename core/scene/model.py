@@ -157,7 +157,7 @@ class Camera:
 
     lens and sensor sizes in mm; sensor_fit "AUTO" | "HORIZONTAL" | "VERTICAL"; shift in units of
     the fitted sensor dimension (Blender's rule); ortho_scale = size in metres of the fitted frame
-    side (the larger side for AUTO). Exact rules: render/camera.py.
+    side (the larger side for AUTO). Exact rules: scene/camera.py.
     """
 
     name: str

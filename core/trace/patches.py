@@ -45,7 +45,10 @@ NEWTON_ITERS = 12
 # Newton may step outside the sub-patch while converging; a root is accepted when its local
 # coordinates lie within this margin of [0, 1] (neighbouring sub-patches overlap on edges).
 PARAM_MARGIN = 1e-9
-# Largest Newton step in local parameter units (damping keeps wild steps inside the patch).
+# Largest Newton step in local parameter units, per component: clipping keeps wild steps inside
+# the patch. Each component is clipped on its own: next to a collapsed edge (a pole) the step
+# along the edge is huge and meaningless (S_s ~ 0 there), while the step away from it is small
+# and right; scaling both by one factor stalled the runs on the edge for many iterations.
 MAX_STEP = 0.5
 # Seeds: a plane hit outside the extended corner triangles (barycentric margin) seeds at the
 # sub-patch midpoint instead.
@@ -64,13 +67,22 @@ TWIN_CONE_MARGIN_DEG = 1.0
 # A twin run that converged at least this far (net-local parameter units) from the first root
 # found a second root, not the first one again.
 TWIN_DISTINCT = 1e-6
+# A converged root lies within tol of the ray, so along the ray only within tol / |cos| of
+# the crossing (cos: ray against normal); the piece test allows that much past the piece's edge,
+# capped at this fraction of the object diagonal (about the length over which a tangent ray
+# stays within tol of a surface curved on the object's scale).
+ROOT_REACH_REL = 1e-6
 # Child boxes in the retry are padded by this fraction of the object diagonal (rounding).
 BOX_PAD_REL = 1e-12
 # Self-intersection guard: hits closer than this (relative to the object diagonal) are ignored.
 T_MIN_REL = 1e-9
-# |Ss x St| below this (relative to (|Ss| + |St|)^2) marks a degenerate point (pole, collapsed edge):
-# the normal comes from the geometry's limit-normal evaluation instead.
-DEGENERATE_REL = 1e-9
+# |Ss x St| below this (relative to (|Ss| + |St|)^2) marks a point at or next to a degenerate one
+# (pole, collapsed edge): the normal comes from the patch's own normal evaluation (nurbs.normals:
+# the limit normal at the point itself) instead. Near a collapsed edge S_s shrinks to rounding
+# noise of the subdivided net's coordinates (each de Casteljau split adds some), and the cross
+# product's direction errs by up to ~1e-13 / (this ratio) rad (1e-4 rad at 1e-9 rad from the
+# glass_sphere's pole); the patch's own evaluation errs by <= ~3e-7 rad there.
+DEGENERATE_REL = 1e-6
 # A batch with at most this many far candidates (a ray's third box or later) solves them with
 # the near ones in one stage: a stage's fixed cost (a whole Newton-and-fallback pipeline; an
 # intersect call cost ~7 ms beyond its pairs' work before the projected-net Newton) outweighs
@@ -376,9 +388,9 @@ class PatchTracer:
 
     def _newton(self, proj, p, q, s, t):
         """Newton iterations in place on (s, t) for nets of degree (p, q) projected onto their
-        rays' planes (``_project``: proj (n, (p+1)(q+1), 3)); returns the converged mask. Steps
-        are damped to MAX_STEP; runs that leave [-1, 2]^2 or meet a singular Jacobian stop
-        unconverged. The live runs are kept packed (no per-iteration gathers).
+        rays' planes (``_project``: proj (n, (p+1)(q+1), 3)); returns the converged mask. Each
+        step component is clipped to MAX_STEP; at a singular Jacobian the step is the least-squares
+        one; runs that leave [-1, 2]^2 or meet a zero Jacobian stop unconverged. The live runs are kept packed (no per-iteration gathers).
 
         With A, B, W the projected nets' values, the ray planes' residuals are f1 = A / W,
         f2 = B / W (distances of the surface point from the planes) and their partials
@@ -410,14 +422,16 @@ class PatchTracer:
             e = (H[:, 2, 1] - H[:, 2, 2] * f2) / w
             det = a * e - b * c
             sing = ~(np.abs(det) > 1e-300 + 1e-14 * (np.abs(a * e) + np.abs(b * c)))
-            safe = np.where(sing, 1.0, det)
-            ds = (e * f1 - b * f2) / safe
-            dt = (a * f2 - c * f1) / safe
-            step = np.maximum(np.abs(ds), np.abs(dt))
-            damp = np.where(step > MAX_STEP, MAX_STEP / np.maximum(step, 1e-300), 1.0)
-            ss -= np.where(conv, 0.0, ds * damp)
-            tt -= np.where(conv, 0.0, dt * damp)
-            done = conv | sing | (ss < -1.0) | (ss > 2.0) | (tt < -1.0) | (tt > 2.0)
+            # a rank-one Jacobian (on a collapsed edge S_s = 0): the least-squares step J^T f /
+            # |J|^2 moves off the edge; only a zero Jacobian ends the run
+            frob = a * a + b * b + c * c + e * e
+            dead = sing & ~(frob > 1e-300)
+            safe = np.where(sing, np.where(dead, 1.0, frob), det)
+            ds = np.where(sing, a * f1 + c * f2, e * f1 - b * f2) / safe
+            dt = np.where(sing, b * f1 + e * f2, a * f2 - c * f1) / safe
+            ss -= np.where(conv, 0.0, np.clip(ds, -MAX_STEP, MAX_STEP))
+            tt -= np.where(conv, 0.0, np.clip(dt, -MAX_STEP, MAX_STEP))
+            done = conv | dead | (ss < -1.0) | (ss > 2.0) | (tt < -1.0) | (tt > 2.0)
             if done.any():
                 ok[act[conv]] = True
                 s[act[done]] = ss[done]
@@ -437,6 +451,9 @@ class PatchTracer:
         behind a found root (a nearer hit), ahead of a root at the ray's own start (t <= tmin:
         the next hit of a ray leaving the surface). A root counts as the ray's start, not a hit,
         when the surface crossing it stands for lies at or before tmin (``_crossing_behind``).
+        A root past the piece's edge (on the net's polynomial continued across a piece
+        boundary: a seam, a knot line) is no hit, but its twin may lie in the net, just inside
+        the boundary, where Newton from inside the net went past it: it gets the twin run too.
         ``proj``: the nets projected onto their rays' planes (``_project``), for the twin runs.
         Returns the mask of pairs whose root is grazing (their net may hold a second root) and
         whose twin run, if any, did not find a second root."""
@@ -445,8 +462,6 @@ class PatchTracer:
         t_sub = box[:, 2] + (box[:, 3] - box[:, 2]) * t
         ps = grp.ps0[sp] + (grp.ps1[sp] - grp.ps0[sp]) * s_sub
         pt = grp.pt0[sp] + (grp.pt1[sp] - grp.pt0[sp]) * t_sub
-        ok = ok & (ps >= -PARAM_MARGIN) & (ps <= 1 + PARAM_MARGIN) & (pt >= -PARAM_MARGIN) \
-            & (pt <= 1 + PARAM_MARGIN)
         good = np.flatnonzero(ok)
         grazing = np.zeros(len(r), bool)
         if len(good) == 0:
@@ -460,6 +475,22 @@ class PatchTracer:
         ln = np.linalg.norm(nrm, axis=1)
         un = nrm / np.maximum(ln, 1e-300)[:, None]
         cos = np.einsum("ij,ij->i", un, dd)
+        # the ray direction within the tangent plane, in parameter units per unit length
+        w = dd - cos[:, None] * un
+        w /= np.maximum(np.linalg.norm(w, axis=1), 1e-300)[:, None]
+        a, b = _tangent_coords(Ps, Pt, w)
+        # Newton's residual is a distance from the ray, so a root is placed along the ray only
+        # to within tol / |cos| (a grazing root next to a piece boundary may land just across
+        # it from either side): the piece test allows that far, in parameter units
+        tol = NEWTON_TOL_REL * self.diag
+        reach = np.minimum(tol / np.maximum(np.abs(cos), 1e-300), ROOT_REACH_REL * self.diag)
+        gs, gg = sp[good], good
+        slack_s = PARAM_MARGIN + reach * np.abs(a) * (grp.ps1[gs] - grp.ps0[gs]) \
+            * (box[gg, 1] - box[gg, 0])
+        slack_t = PARAM_MARGIN + reach * np.abs(b) * (grp.pt1[gs] - grp.pt0[gs]) \
+            * (box[gg, 3] - box[gg, 2])
+        in_piece = (ps[gg] >= -slack_s) & (ps[gg] <= 1 + slack_s) & (pt[gg] >= -slack_t) \
+            & (pt[gg] <= 1 + slack_t)
         start = tt <= tmin[rr]
         # |g| <= tol for a converged root, so only these may stand for a crossing behind tmin
         near = np.flatnonzero(~start & (2.0 * NEWTON_TOL_REL * self.diag
@@ -468,7 +499,7 @@ class PatchTracer:
             start[near] = _crossing_behind(o[rr[near]], dd[near], tt[near], tmin[rr[near]],
                                            P[near], Ps[near], Pt[near], Pss[near], Pst[near],
                                            Ptt[near], un[near], cos[near])
-        cand = np.flatnonzero(~start & (tt < best_t[rr]))
+        cand = np.flatnonzero(in_piece & ~start & (tt < best_t[rr]))
         order = cand[np.lexsort((tt[cand], rr[cand]))]
         first = order[np.r_[True, rr[order][1:] != rr[order][:-1]]] if len(order) else order
         self._record(res, best_t, grp, sp[good[first]], rr[first], tt[first], P[first],
@@ -478,10 +509,7 @@ class PatchTracer:
         grazing[good[g]] = True
         if not twin or len(g) == 0:
             return grazing
-        # the ray direction within the tangent plane, in parameter units per unit length
-        w = dd[g] - cos[g, None] * un[g]
-        w /= np.maximum(np.linalg.norm(w, axis=1), 1e-300)[:, None]
-        a, b = _tangent_coords(Ps[g], Pt[g], w)
+        a, b = a[g], b[g]
         curv = np.abs(np.einsum("ij,ij->i", un[g], a[:, None] ** 2 * Pss[g]
                                 + 2 * (a * b)[:, None] * Pst[g] + b[:, None] ** 2 * Ptt[g]))
         chord = 2.0 * np.abs(cos[g]) / np.maximum(curv, 1e-300)

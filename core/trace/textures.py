@@ -84,8 +84,8 @@ def eval_texture(tex: Texture, points: np.ndarray, uvs: np.ndarray | None) -> np
         t = np.clip((c[:, tex.axis] - tex.start) / (tex.end - tex.start), 0.0, 1.0)[:, None]
         return (1 - t) * np.asarray(tex.color, float) + t * np.asarray(tex.color2, float)
     if tex.kind == "image":
-        if tex.image is None:
-            raise ValueError(f"image texture {tex.path!r} is not loaded")
+        if tex.image is None or tex.image.size == 0:
+            raise ValueError(f"image texture {tex.path!r} is not loaded or has no pixels")
         return _bilinear(tex.image, c[:, 0] * tex.scale, c[:, 1] * tex.scale, wrap_v=True)
     raise ValueError(f"unknown texture kind {tex.kind!r}")
 
@@ -100,8 +100,8 @@ def eval_world(world: World, dirs: np.ndarray) -> np.ndarray:
         t = np.clip(d[:, 2], 0.0, 1.0)[:, None]
         col = (1 - t) * np.asarray(world.color, float) + t * np.asarray(world.zenith, float)
     elif world.kind == "image":
-        if world.image is None:
-            raise ValueError(f"world image {world.path!r} is not loaded")
+        if world.image is None or world.image.size == 0:
+            raise ValueError(f"world image {world.path!r} is not loaded or has no pixels")
         u, v = equirectangular(d)
         col = _bilinear(world.image, u, v, wrap_v=False)
     elif world.kind == "nodes":

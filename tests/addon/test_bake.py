@@ -127,12 +127,14 @@ def test_bad_settings_refused_before_the_bake(bl, tmp_path):
     p = obj.riray
     p.bake_for_cameras, p.viewpoint_depth, p.viewpoint_refine = True, 9, 2   # both in range
     t0 = time.time()
-    with pytest.raises(RuntimeError, match="viewpoint_depth \\+ viewpoint_refine <= 10"):
+    with pytest.raises(RuntimeError, match="Viewpoint depth 9 \\+ Viewpoint refine 2 is more "
+                                           "than 10"):
         bpy.ops.riray.bake(object=obj.name)
-    with pytest.raises(RuntimeError, match="viewpoint_depth \\+ viewpoint_refine <= 10"):
+    with pytest.raises(RuntimeError, match="Viewpoint depth 9 \\+ Viewpoint refine 2"):
         bpy.ops.riray.bake_estimate(object=obj.name)
     p.viewpoint_depth, p.min_direction_depth, p.direction_depth = 2, 5, 3
-    with pytest.raises(RuntimeError, match="min_direction_depth"):
+    with pytest.raises(RuntimeError, match="Min direction depth 5 is more than Direction "
+                                           "depth 3"):
         bpy.ops.riray.bake(object=obj.name)
     assert time.time() - t0 < 10 and bl.jobs.JOBS.get(obj.name) is last_job
     # the finest-level rule reaches core's bake parameters on camera bakes
@@ -240,3 +242,43 @@ def test_eta_is_the_bakes_own_estimate(bl, tmp_path):
     assert job.eta == pytest.approx(38.0, abs=0.5)          # not 10 s from the fraction
     msg = "extra samples (pass 2 of up to 3): 61% (eta 12 s)"
     assert bl.worker.ETA_RE.search(msg)[1] == "12"
+
+
+def test_refused_setting_is_not_kept(bl, tmp_path):
+    """Settings given to the operator and refused are not stored on the object (nor
+    remembered by Blender for the next call): a later bake with valid settings runs. The
+    message names the settings as the panel labels them, and the limit."""
+    bpy = bl.bpy
+    obj, _ = _setup(bl, tmp_path)
+    with pytest.raises(RuntimeError) as err:
+        bpy.ops.riray.bake(object=obj.name, viewpoint_depth=9, viewpoint_refine=4)
+    msg = str(err.value)
+    assert "SurfSphere: Viewpoint depth 9 + Viewpoint refine 4 is more than 10" in msg
+    assert "pad" not in msg and "viewpoint_tolerance_deg" not in msg and "{" not in msg
+    p = obj.riray
+    assert (p.viewpoint_depth, p.viewpoint_refine, p.quality) == (4, 2, "DEFAULT")
+    assert bpy.ops.riray.bake(object=obj.name, direction_depth=1, viewpoint_refine=0,
+                              quality="DRAFT") == {"FINISHED"}
+    assert (p.viewpoint_depth, p.direction_depth, p.viewpoint_refine) == (3, 1, 0)
+
+
+def test_zero_size_object_refused(bl, tmp_path):
+    """A NURBS surface whose control points all coincide is refused before any work, naming
+    the object and its zero size; no temporary folder is left."""
+    import glob
+    import tempfile
+    bpy = bl.bpy
+    obj, _ = _setup(bl, tmp_path)
+    obj.location = (2, 0, 0)
+    for pt in obj.data.splines[0].points:
+        pt.co = (0.3, 0.2, 0.1, 1.0)
+    bpy.context.view_layer.update()
+    pattern = os.path.join(tempfile.gettempdir(), "riray_bake_*")
+    before = set(glob.glob(pattern))
+    last_job = bl.jobs.JOBS.get(obj.name)
+    for op in (bpy.ops.riray.bake, bpy.ops.riray.bake_estimate):
+        with pytest.raises(RuntimeError, match="SurfSphere: the object has zero size \\(all its "
+                                               "control points lie at one point\\)"):
+            op(object=obj.name)
+    assert set(glob.glob(pattern)) == before
+    assert bl.jobs.JOBS.get(obj.name) is last_job

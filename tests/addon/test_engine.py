@@ -305,3 +305,73 @@ def test_max_error_and_path_identity_trace_through_baked_tree(bl, tmp_path):
     assert off < 0.5 and off <= path            # here 0.11 / 0.11 / 1.0
     assert tight >= 0.98
     assert tight_newton < 0.5                   # here 0.18
+
+
+def exr_attributes(path) -> dict:
+    """An OpenEXR file's header attributes, name -> (type, raw bytes): after the magic number
+    and version, each is name NUL, type NUL, int32 size, value; an empty name ends the list."""
+    import struct
+    data = open(path, "rb").read()
+    assert data[:4] == b"\x76\x2f\x31\x01"
+    pos, out = 8, {}
+    while data[pos] != 0:
+        fields = []
+        for _ in range(2):
+            end = data.index(b"\0", pos)
+            fields.append(data[pos:end].decode())
+            pos = end + 1
+        (size,) = struct.unpack_from("<i", data, pos)
+        out[fields[0]] = (fields[1], data[pos + 4:pos + 4 + size])
+        pos += 4 + size
+    return out
+
+
+def test_exr_carries_riray_metadata(bl, tmp_path):
+    bpy = bl.bpy
+    build_scene(bl, tmp_path)
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    attrs = exr_attributes(tmp_path / "still.exr")
+    st = bl.engine.LAST_RENDER["stats"]
+    assert attrs["riray traced fraction"] == ("string", f"{st['traced_fraction']:.4f}".encode())
+    assert attrs["riray render s"] == ("string", f"{st['render_time_s']:.3f}".encode())
+
+
+def test_render_region(bl, tmp_path):
+    """With a render region only its pixels are rendered: cropped to the region, or in place
+    in the full frame (the rest empty); they equal the full frame's pixels there."""
+    bpy = bl.bpy
+    obj = build_scene(bl, tmp_path)
+    ref = core_reference(bl, obj)
+    r = bpy.context.scene.render
+    r.use_border = True
+    r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y = 0.25, 0.8, 0.1, 0.6
+    x0, x1, y0, y1 = int(0.25 * W), int(0.8 * W), int(0.1 * H), int(0.6 * H)
+    rows = slice(H - y1, H - y0)                       # top row first
+    r.use_crop_to_border = True
+    r.filepath = str(tmp_path / "crop.exr")
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    got = load_exr(bpy, tmp_path / "crop.exr")
+    assert got.shape == (y1 - y0, x1 - x0, 3)
+    assert np.abs(got - ref[rows, x0:x1]).max() < 1e-5
+    assert bl.engine.LAST_RENDER["image"].shape == (y1 - y0, x1 - x0, 3)
+    r.use_crop_to_border = False
+    r.filepath = str(tmp_path / "inplace.exr")
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    got = load_exr(bpy, tmp_path / "inplace.exr")
+    assert got.shape == (H, W, 3)
+    assert np.abs(got[rows, x0:x1] - ref[rows, x0:x1]).max() < 1e-5
+    outside = np.ones((H, W), bool)
+    outside[rows, x0:x1] = False
+    assert np.all(got[outside] == 0.0)
+
+
+def test_depth_of_field_is_reported(bl, tmp_path):
+    bpy = bl.bpy
+    build_scene(bl, tmp_path)
+    bpy.context.scene.camera.data.dof.use_dof = True
+    reports = []
+    engine = type("Engine", (), {"camera_override": None, "update_stats": lambda *a: None,
+                                 "report": lambda _, lv, msg: reports.append((set(lv), msg))})()
+    bl.engine.RirayRenderEngine._export(engine, bpy.context.evaluated_depsgraph_get())
+    assert ({"WARNING"}, "camera Camera: depth of field is not rendered (everything is in "
+                         "focus)") in reports

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from riray.geometry.nurbs import evaluate
-from riray.render.camera import pixel_rays
+from riray.scene.camera import pixel_rays
 
 TOL = 1e-5          # m: Blender's evaluated mesh is float32
 
@@ -445,3 +445,56 @@ def test_environment_instances_and_excluded_collections(bl):
     s = bl.export.export_scene(bpy.context.evaluated_depsgraph_get(), obj, bl.report.Report(),
                                cameras="NONE")
     assert [float(m.vertices[:, 0].min()) for m in s.meshes] == [10.0]
+
+
+def test_what_changes_the_image_is_a_warning(bl):
+    """Every approximation that changes the image is reported as a warning (Blender shows
+    those): a light's radius, smooth-shaded mesh faces, a named UV map, image interpolation,
+    objects left out of the environment. Light exposure and temperature are rendered."""
+    bpy = bl.bpy
+    obj = _add(bpy, "sphere")
+    bpy.ops.mesh.primitive_uv_sphere_add(location=(3, 0, 0))
+    bpy.ops.object.shade_smooth()
+    ball = bpy.context.active_object
+
+    def image(nt, sock):
+        uv = nt.nodes.new("ShaderNodeUVMap")
+        uv.uv_map = "UVMap"
+        t = nt.nodes.new("ShaderNodeTexImage")
+        t.image = bpy.data.images.new("px", 2, 2)
+        t.interpolation = "Closest"
+        nt.links.new(uv.outputs["UV"], t.inputs["Vector"])
+        nt.links.new(t.outputs["Color"], sock)
+
+    ball.data.materials.append(_tex_material(bl, "tiles", image))
+    vol = bpy.data.objects.new("Fog", bpy.data.volumes.new("fog"))
+    bpy.context.scene.collection.objects.link(vol)
+    bpy.ops.object.light_add(type="POINT", location=(0, 0, 3))
+    lamp = bpy.context.active_object.data
+    lamp.shadow_soft_size, lamp.energy, lamp.color = 0.2, 100.0, (1.0, 0.5, 0.25)
+    has_exposure = hasattr(lamp, "exposure")             # Blender 4.5 and later
+    if has_exposure:
+        lamp.exposure, lamp.use_temperature, lamp.temperature = 1.0, True, 3000.0
+    bpy.context.scene.world = bl.compat.new_world("sky")
+    bpy.context.view_layer.update()
+    rep = bl.report.Report()
+    dg = bpy.context.evaluated_depsgraph_get()
+    s = bl.export.export_scene(dg, obj, rep)
+    bl.export.export_object(ball, dg, rep)
+    # the texture kinds' reading of the material (the node graph reads it exactly)
+    bl.materials._fixed_environment_material(ball.data.materials[0], rep, ball, True)
+    warnings = " | ".join(rep.messages("WARNING"))
+    for text in ("light Point: radius 0.2 m ignored", "Sphere: smooth shading of mesh faces",
+                 "UV map 'UVMap': the mesh's active UV map is used",
+                 "image interpolation Closest -> linear",
+                 "Fog: volume objects are not part of the environment"):
+        assert text in warnings, text
+    assert not rep.messages("INFO"), rep       # (without a world, Blender renders black too)
+    light = s.lights[0]
+    if has_exposure:
+        assert light.power == pytest.approx(200.0)
+        tint = np.array(lamp.temperature_color[:3])
+        assert np.allclose(light.color, np.array([1.0, 0.5, 0.25]) * tint, atol=1e-6)
+        assert tint[0] > tint[2]                         # 3000 K is warm
+    else:
+        assert light.power == pytest.approx(100.0)

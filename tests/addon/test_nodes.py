@@ -226,7 +226,7 @@ def cycles_offset(blender, tmp_path_factory):
     """How far (pixels, per axis) Cycles' sample lies from the pixel centre in these renders,
     measured on a background showing the incoming direction (which gives the sample's position
     in the image plane), times OFFSET_MARGIN; within the box filter's half width."""
-    from riray.render.camera import camera_rays
+    from riray.scene.camera import camera_rays
     bl = blender
     bl.reset()
     tmp = tmp_path_factory.mktemp("offset")

@@ -105,3 +105,52 @@ def test_other_panels_draw(bl, panel):
     fake = type("P", (), {"layout": Layout()})()
     cls.draw(fake, ctx)
     assert fake.layout.log
+
+
+# Built-in panels RI-Tree Preview must show, by role; each role lists the panels it may be
+# (engine-specific names differ between Blender versions; every one present must list RIRAY).
+REQUIRED_PANELS = {
+    "material slots": ("EEVEE_MATERIAL_PT_context_material",),
+    "material surface": ("EEVEE_MATERIAL_PT_surface",),
+    "world surface": ("EEVEE_WORLD_PT_surface",),
+    "light": ("DATA_PT_EEVEE_light",),
+    "camera": ("DATA_PT_camera", "DATA_PT_lens"),
+    "depth of field": ("DATA_PT_camera_dof",),
+    "passes": ("VIEWLAYER_PT_layer_passes",),
+    "output": ("RENDER_PT_format", "RENDER_PT_output", "RENDER_PT_frame_range"),
+}
+# Panels whose settings riray ignores or shows elsewhere.
+UNWANTED_PANELS = ("DATA_PT_light", "DATA_PT_spot", "MATERIAL_PT_preview",
+                   "EEVEE_MATERIAL_PT_volume", "EEVEE_WORLD_PT_volume",
+                   "EEVEE_MATERIAL_PT_settings", "RENDER_PT_eevee_sampling")
+
+
+def _riray_panels(bpy):
+    return {name for names in REQUIRED_PANELS.values() for name in names
+            if "RIRAY" in getattr(getattr(bpy.types, name, None), "COMPAT_ENGINES", ())}
+
+
+def test_builtin_panels_list_the_engine(blender):
+    """Material slots and surface, world surface, light, camera with depth of field, passes
+    and output show with RI-Tree Preview after register, and no longer after unregister;
+    panels of settings riray ignores do not."""
+    bpy = blender.bpy
+    for role, names in REQUIRED_PANELS.items():
+        present = [n for n in names if hasattr(bpy.types, n)]
+        assert present, f"{role}: none of {names} in this Blender"
+        for name in present:
+            assert "RIRAY" in getattr(bpy.types, name).COMPAT_ENGINES, (role, name)
+    for name in UNWANTED_PANELS:
+        panel = getattr(bpy.types, name, None)
+        assert panel is None or "RIRAY" not in panel.COMPAT_ENGINES, name
+    assert bpy.types.RIRAY_PT_passes.bl_parent_id == "VIEWLAYER_PT_layer_passes"
+    blender.addon.unregister()
+    try:
+        assert not _riray_panels(bpy)
+        assert not [p.__name__ for p in bpy.types.Panel.__subclasses__()
+                    if "RIRAY" in getattr(p, "COMPAT_ENGINES", ())
+                    and not p.__name__.startswith("RIRAY_")]
+    finally:
+        blender.addon.register()
+    assert _riray_panels(bpy) == {n for names in REQUIRED_PANELS.values() for n in names
+                                  if hasattr(bpy.types, n)}

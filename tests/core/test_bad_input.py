@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from riray.cli import main
-from riray.render.exact import SceneTracer, point_inside, render_exact
+from riray.render.exact import render_exact
+from riray.trace.scene_tracer import SceneTracer, point_inside
 from riray.scene.io import SceneError, load_scene, look_at_matrix, scene_to_dict
 from riray.scene.model import Camera
 from riray.scene.samples import GLASS_SPHERE_RADIUS, SAMPLES, build, sample_points

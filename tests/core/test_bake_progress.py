@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from riray.geometry.primitives import sphere
-from riray.render.exact import SceneTracer
+from riray.trace.scene_tracer import SceneTracer
 from riray.ritree import bake as bake_mod
 from riray.ritree.region import region_for_cameras
 from riray.ritree.tree import BakeParams

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from riray.render.camera import camera_rays, pixel_rays, project_points
+from riray.scene.camera import camera_rays, pixel_rays, project_points
 from riray.scene.io import look_at_matrix
 from riray.scene.model import Camera
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from riray.geometry.primitives import sphere
-from riray.render.camera import camera_rays
-from riray.render.exact import SceneTracer
+from riray.scene.camera import camera_rays
+from riray.trace.scene_tracer import SceneTracer
 from riray.ritree.bake import bake, rect_sees_boxes
 from riray.ritree.dircube import CUBE, N_SLOTS, cube_to_dir
 from riray.ritree.query import MISS, QueryOptions, TreeQuery

@@ -1,5 +1,5 @@
-"""RI-Tree storage: bit-identical .rit round trips (every dtype, empty and 0-d arrays, mmap and
-in-memory), every read error (foreign, truncated, corrupt, malformed, inconsistent, wrong
+"""RI-Tree storage: bit-identical .rit round trips (every dtype, empty and 0-d arrays, read
+into memory, never memory-mapped), every read error (foreign, truncated, corrupt, malformed, inconsistent, wrong
 version, stale), atomic writes under failure, the geometry fingerprint, and the codecs' worst-case
 error bounds on a million vectors / points including the octahedron's folds and poles."""
 
@@ -97,9 +97,8 @@ def compressible(dtype, shape):
     return np.resize(random_array(dtype, (5,)), shape)
 
 
-@pytest.mark.parametrize("mmap", [True, False])
 @pytest.mark.parametrize("chain", CHAINS)
-def test_round_trip_bit_identical(tmp_path, mmap, chain):
+def test_round_trip_bit_identical(tmp_path, chain):
     """Every dtype and shape, random (incompressible: stored raw) and compressible arrays, each
     saved under ``chain`` where the dtype allows it."""
     arrays = {f"{np.dtype(t).name}_{i}_{kind}": make(t, s)
@@ -109,20 +108,17 @@ def test_round_trip_bit_identical(tmp_path, mmap, chain):
     header = {"fingerprint": FP, "counts": [1, 2], "nested": {"x": None, "y": 1.5, "z": "\u03c0"}}
     path = tmp_path / "all.rit"
     cache.save_tree(path, header, arrays, fits)
-    got_header, got = cache.load_tree(path, mmap=mmap)
+    got_header, got = cache.load_tree(path)
     assert got_header == header
     assert list(got) == list(arrays)
     table = {e["name"]: e for e in cache.describe(path)["arrays"]}
     for name, a in arrays.items():
         b = got[name]
         assert b.dtype == a.dtype and b.shape == a.shape and b.tobytes() == a.tobytes(), name
-        assert b.flags.writeable != mmap
+        assert b.flags.writeable and not isinstance(b, np.memmap)
         e = table[name]
         assert e["filters"] in ([], list(fits.get(name, ())))   # raw where it would not shrink
         assert (e["stored"] < e["nbytes"]) == bool(e["filters"])
-        if mmap and a.size and not e["filters"]:
-            assert isinstance(b, np.memmap)
-            assert b.ctypes.data % cache.ALIGN == 0
     if "lzma" in chain:           # the smooth arrays of 1,200 elements do shrink
         assert table["int32_5_smooth"]["filters"] == list(fits["int32_5_smooth"])
 
@@ -247,13 +243,13 @@ def test_lzma_stream_longer_than_the_table_is_refused():
         filters.decode(big[:-7], ("lzma",), np.dtype("<u1"), (10**6,))
 
 
-def test_mmap_and_memory_loads_agree_and_inputs_normalised(tmp_path):
+def test_verified_and_unverified_loads_agree_and_inputs_normalised(tmp_path):
     big_endian = np.arange(10, dtype=">f8")
     strided = np.arange(60, dtype=np.int16).reshape(6, 10)[::2, ::3]
     path = tmp_path / "n.rit"
     cache.save_tree(path, {}, {"be": big_endian, "strided": strided})
-    _, m = cache.load_tree(path, mmap=True)
-    _, c = cache.load_tree(path, mmap=False, verify=False)
+    _, m = cache.load_tree(path)
+    _, c = cache.load_tree(path, verify=False)
     for name, src in (("be", big_endian), ("strided", strided)):
         assert np.array_equal(m[name], src) and np.array_equal(c[name], src)
         assert m[name].dtype.byteorder in "<=|" and m[name].tobytes() == c[name].tobytes()
@@ -319,9 +315,8 @@ def test_corrupt_payload_names_array(tree):
     _, data_offset, body = layout(path)
     entry = next(e for e in json.loads(body)["arrays"] if e["name"] == "b")
     flip(path, data_offset + entry["offset"] + 5)
-    for mmap in (True, False):
-        error(path, "corrupt: array 'b' checksum", mmap=mmap)
-    _, got = cache.load_tree(path, verify=False)     # unverified loads do not read the payload
+    error(path, "corrupt: array 'b' checksum")
+    _, got = cache.load_tree(path, verify=False)     # unverified loads check no crc32
     assert not np.array_equal(got["b"], arrays["b"])
 
 
@@ -334,18 +329,15 @@ def test_corrupt_filtered_array_names_it(tree, where):
     _, data_offset, _ = layout(path)
     if where == "stream":
         flip(path, data_offset + e["offset"] + e["stored"] // 2)
-        for mmap in (True, False):
-            for verify in (True, False):
-                error(path, "corrupt: array 'c' (does not decode|checksum)", mmap=mmap,
-                      verify=verify)
+        for verify in (True, False):
+            error(path, "corrupt: array 'c' (does not decode|checksum)", verify=verify)
         return
     doc = json.loads(layout(path)[2])           # the table's crc32 of "c" no longer fits
     next(x for x in doc["arrays"] if x["name"] == "c")["crc32"] ^= 1
     rewrite_header(path, doc=doc)
-    for mmap in (True, False):
-        error(path, "corrupt: array 'c' checksum", mmap=mmap)
-        _, got = cache.load_tree(path, mmap=mmap, verify=False)
-        assert np.array_equal(got["c"], arrays["c"])
+    error(path, "corrupt: array 'c' checksum")
+    _, got = cache.load_tree(path, verify=False)
+    assert np.array_equal(got["c"], arrays["c"])
 
 
 def test_corrupt_header_padding_trailer(tree):

@@ -32,8 +32,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from riray.render.camera import camera_rays
-from riray.render.exact import SceneTracer
+from riray.scene.camera import camera_rays
+from riray.trace.scene_tracer import SceneTracer
 from riray.ritree import tree as ritree
 from riray.ritree.bake import bake
 from riray.ritree.query import (ANSWER_NAMES, EXTRA_S, EXTRAPOLATED_S, FULL, MISS, NULL_S,

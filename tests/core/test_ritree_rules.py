@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from riray.geometry.primitives import bilinear
-from riray.render.exact import SceneTracer
+from riray.trace.scene_tracer import SceneTracer
 from riray.ritree.dircube import DOMAIN, N_SLOTS, UV_AXES
 from riray.ritree.quadtree import Forest
 from riray.ritree.query import (EXTRA_S, FULL, MISS, REDUCED, TRACED, WHY_CLASSES,

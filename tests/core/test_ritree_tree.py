@@ -1044,9 +1044,9 @@ def test_region_cells_only_describe(mirror):
 
 
 # --------------------------------------------------------------------------- 10: cache
-def save_load(tree, path, mmap):
+def save_load(tree, path):
     ritree.save(tree, path)
-    header, arrays = cache.load_tree(path, mmap=mmap)
+    header, arrays = cache.load_tree(path)
     assert header == tree.header()
     for k, a in tree.arrays().items():
         # bit for bit (NaN errors of unmeasured nodes included)
@@ -1183,10 +1183,10 @@ def test_extra_positions_are_stored_exactly(tmp_path, mirror):
 
 def test_cache_round_trip_answers_bit_identically(tmp_path, sphere_st, sphere_trees):
     """save_tree(header(), arrays()) / load_tree -> from_parts keeps every array bit for bit
-    and a loaded tree (mmap or in memory, or saved again and reloaded) answers bit-identically."""
+    and a loaded tree (saved again and reloaded too) answers bit-identically."""
     tree = sphere_trees[4, 4]
-    a = save_load(tree, tmp_path / "a.rit", mmap=True)
-    b = save_load(a, tmp_path / "b.rit", mmap=False)
+    a = save_load(tree, tmp_path / "a.rit")
+    b = save_load(a, tmp_path / "b.rit")
     assert (tmp_path / "a.rit").read_bytes() == (tmp_path / "b.rit").read_bytes()
     o, d, tmax = cache_queries(tree)
     same_answers(a, b, sphere_st, o, d, tmax)
@@ -1217,7 +1217,7 @@ def test_file_is_the_same_tree_in_first_use_order_and_compressed(tmp_path, spher
     arrays."""
     tree = sphere_trees[4, 4]
     path = tmp_path / "a.rit"
-    back = save_load(tree, path, mmap=True)
+    back = save_load(tree, path)
     back.attach_geometry(sphere_st.tracer)
     leaf = tree.dir_forest.child < 0
     old_ids, new_ids = tree.dir_forest.corner[leaf], back.dir_forest.corner[leaf]
@@ -1249,7 +1249,7 @@ def test_cache_round_trip_close_to_baked_tree(tmp_path, sphere_st, sphere_trees)
     """The file stores samples compactly (16-bit box codes, octahedral unit vectors): a
     loaded tree answers like the baked one within the codec's error bounds."""
     tree = sphere_trees[4, 4]
-    back = save_load(tree, tmp_path / "a.rit", mmap=True)
+    back = save_load(tree, tmp_path / "a.rit")
     o, d, tmax = cache_queries(tree)
     r1, a1, _, _ = TreeQuery(tree, sphere_st)(o, d, tmax)
     r2, a2, _, _ = TreeQuery(back, sphere_st)(o, d, tmax)
@@ -1263,7 +1263,7 @@ def test_cache_round_trip_close_to_baked_tree(tmp_path, sphere_st, sphere_trees)
 
 def test_loaded_tree_answers_like_baked_tree_bit_identically(tmp_path, sphere_st, sphere_trees):
     tree = sphere_trees[4, 4]
-    back = save_load(tree, tmp_path / "a.rit", mmap=False)
+    back = save_load(tree, tmp_path / "a.rit")
     o, d, tmax = cache_queries(tree)
     same_answers(tree, back, sphere_st, o, d, tmax)
 

@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 
 from riray.geometry.primitives import bilinear
-from riray.render.camera import camera_rays, pixel_rays, project_points
-from riray.render.exact import SceneTracer
+from riray.scene.camera import camera_rays, pixel_rays, project_points
+from riray.trace.scene_tracer import SceneTracer
 from riray.ritree import cache
 from riray.ritree import tree as ritree
 from riray.ritree.bake import bake

@@ -14,7 +14,7 @@ import pytest
 
 from riray.geometry.nurbs import evaluate
 from riray.geometry.primitives import revolve
-from riray.render.camera import project_points
+from riray.scene.camera import project_points
 from riray.scene import samples
 from riray.scene.io import load_scene, save_scene, scene_from_dict, scene_to_dict
 from riray.scene.model import ObjectMaterial

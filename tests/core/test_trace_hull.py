@@ -10,7 +10,7 @@ import pytest
 from riray.geometry.bezier import bezier_eval
 from riray.geometry.primitives import sphere
 from riray.geometry.tessellate import tessellate
-from riray.render.camera import camera_rays
+from riray.scene.camera import camera_rays
 from riray.scene.model import Mesh, Patch, SpecularObject
 from riray.scene.samples import build
 from riray.trace.meshes import MeshSet
@@ -63,8 +63,9 @@ def test_end_on_hull_test_matches_triangle_cover():
 
 def plain_newton(ctrl, s, t, n1, c1, n2, c2, tol):
     """The tracer's Newton rules (PatchTracer._newton's docstring) written on the surface's
-    points: residuals n_i . S(s, t) - c_i, Jacobian rows n_i . S_s, n_i . S_t; damped to
-    MAX_STEP; a run stops unconverged on a singular Jacobian or outside [-1, 2]^2."""
+    points: residuals n_i . S(s, t) - c_i, Jacobian rows n_i . S_s, n_i . S_t; each step
+    component clipped to MAX_STEP; the least-squares (pseudo-inverse) step at a singular
+    Jacobian; a run stops unconverged on a zero Jacobian or outside [-1, 2]^2."""
     s, t = s.copy(), t.copy()
     ok = np.zeros(len(s), bool)
     live = np.ones(len(s), bool)
@@ -78,14 +79,18 @@ def plain_newton(ctrl, s, t, n1, c1, n2, c2, tol):
         c, e = np.sum(n2 * Ss, 1), np.sum(n2 * St, 1)
         det = a * e - b * c
         sing = ~(np.abs(det) > 1e-300 + 1e-14 * (np.abs(a * e) + np.abs(b * c)))
-        safe = np.where(sing, 1.0, det)
-        ds, dt = (e * f1 - b * f2) / safe, (a * f2 - c * f1) / safe
-        step = np.maximum(np.abs(ds), np.abs(dt))
-        damp = np.where(step > P.MAX_STEP, P.MAX_STEP / np.maximum(step, 1e-300), 1.0)
+        frob = a * a + b * b + c * c + e * e
+        dead = sing & ~(frob > 1e-300)
+        jac = np.stack([np.stack([a, b], 1), np.stack([c, e], 1)], 1)
+        inv = np.linalg.pinv(jac, rcond=1e-12)
+        ds = np.where(sing, inv[:, 0, 0] * f1 + inv[:, 0, 1] * f2,
+                      (e * f1 - b * f2) / np.where(sing, 1.0, det))
+        dt = np.where(sing, inv[:, 1, 0] * f1 + inv[:, 1, 1] * f2,
+                      (a * f2 - c * f1) / np.where(sing, 1.0, det))
         move = live & ~conv
-        s = np.where(move, s - ds * damp, s)
-        t = np.where(move, t - dt * damp, t)
-        live &= ~conv & ~(sing | (s < -1) | (s > 2) | (t < -1) | (t > 2))
+        s = np.where(move, s - np.clip(ds, -P.MAX_STEP, P.MAX_STEP), s)
+        t = np.where(move, t - np.clip(dt, -P.MAX_STEP, P.MAX_STEP), t)
+        live &= ~conv & ~(dead | (s < -1) | (s > 2) | (t < -1) | (t > 2))
     return ok, s, t
 
 

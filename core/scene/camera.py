@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..scene.io import MAX_IMAGE_SIDE
-from ..scene.model import Camera
+from .io import MAX_IMAGE_SIDE
+from .model import Camera
 
 
 def _frame(cam: Camera, width: int, height: int) -> tuple[float, float, float]:

@@ -1,0 +1,27 @@
+"""Helpers the benchmarks share: CPU clocks, sums of per-chunk stats, medians."""
+
+from __future__ import annotations
+
+import resource
+
+import numpy as np
+
+
+def cpu_seconds() -> float:
+    """CPU seconds of this process and its reaped children (the bake's worker pools)."""
+    s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
+
+
+def sum_stats(dicts) -> dict:
+    """Stats dicts ({name: count or seconds}) summed key by key (a missing key counts 0)."""
+    out = {}
+    for d in dicts:
+        for k, v in d.items():
+            out[k] = out.get(k, 0) + v
+    return out
+
+
+def median(xs) -> float:
+    """The median of ``xs`` as a float; NaN for none."""
+    return float(np.median(np.asarray(xs, np.float64))) if len(xs) else float("nan")

@@ -1,0 +1,82 @@
+"""Rules that read what the bake measured in the ray's four leaves and viewpoint cell: the
+baked-error tolerance (QueryOptions.max_error_deg), the trusted misses, and path identity.
+Rays that fail them are traced."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..answers import WHY_PATH, WHY_TOLERANCE, WHY_UNSAMPLED
+from ..tree import BOUNDARY, PATH_CHANGE
+from .sets import group_rows
+
+
+def check_misses(q, b) -> None:
+    """Tolerance mode, the open rays the samples answer MISS (class -1: all 16 miss, or the
+    exact first hit against the candidate patches missed): the miss is trusted where the bake
+    verified it (within the tolerance, no object/miss boundary in the four leaves or the
+    cell); elsewhere the exact first hit against every patch decides, and a ray that hits
+    is traced (WHY_UNSAMPLED: paper Fig. 9(b), or a patch none of its samples hit)."""
+    tree, tol, known = q.tree, q.opt.max_error_deg, b.known
+    s_leaf = b.sets.leaf
+    s_ok = np.all((tree.dir_err[s_leaf] <= tol) & (tree.dir_flags[s_leaf] & BOUNDARY == 0),
+                  axis=1)
+    miss = b.pc == -1
+    c = b.loc.vnode[b.go[miss]]
+    ok = s_ok[b.set_of[miss]] & (tree.vp_err[c] <= tol) & (tree.vp_flags[c] & BOUNDARY == 0)
+    r = b.loc.ray[b.go[miss][~ok]]
+    if len(r):
+        new = r[known.pos[r] < 0]        # the others' first hit stage searched every patch
+        if len(new):
+            known.add(new, q.st.tracer.intersect(b.o[new], b.d[new], tmax=b.tmax[new]))
+        b.trace(r[known.hit(r)], WHY_UNSAMPLED)
+
+
+def within_tolerance(q, b) -> None:
+    """Keep the open rays whose four leaves (decided once per set) and viewpoint cell the bake
+    measured within ``max_error_deg`` (an unmeasured NaN is not); the others are traced
+    (WHY_TOLERANCE). With mirror_rays "newton", a mirror ray outside the tolerance whose leaves
+    and cell the bake did not see change path goes on as one that only an exact hit may answer
+    (``b.must``): the bake's errors are the blend's, which that hit replaces. Where the
+    object's outline crosses them (BOUNDARY), only if the ray's exact first hit is known (a
+    two-class ray): hit or miss is then not a guess. A leaf or cell the bake saw answered
+    wrongly (inf) proves nothing: the ray is traced; one it did not measure (NaN: its midpoint
+    changed class at the maximum depth, or no test ray was interpolated) is traced too, unless
+    the exact first hit is known: its flags, which the bake sets from the traced corners and
+    test rays whether or not it could measure, are then all the evidence the exact hit needs."""
+    tol, tree = q.opt.max_error_deg, q.tree
+    s_leaf, set_of = b.sets.leaf, b.set_of
+    vnode, ray = b.loc.vnode[b.go], b.loc.ray[b.go]
+    s_ok = np.all(tree.dir_err[s_leaf] <= tol, axis=1)
+    ok = s_ok[set_of] & (tree.vp_err[vnode] <= tol)
+    if q.opt.mirror_rays == "newton" and q.material.kind == "mirror":
+        flags = np.bitwise_or.reduce(tree.dir_flags[s_leaf], axis=1)[set_of] \
+            | tree.vp_flags[vnode]
+        exact = b.known.pos[ray] >= 0
+        s_err, c_err = tree.dir_err[s_leaf], tree.vp_err[vnode]
+        measured = np.all(np.isfinite(s_err), axis=1)[set_of] & np.isfinite(c_err)
+        seen_wrong = np.any(np.isinf(s_err), axis=1)[set_of] | np.isinf(c_err)
+        calm = ~ok & (measured | (exact & ~seen_wrong)) & (flags & PATH_CHANGE == 0) \
+            & ((flags & BOUNDARY == 0) | exact)
+        b.must[ray[calm]] = True
+        ok |= calm
+    b.trace(ray[~ok], WHY_TOLERANCE)
+    b.narrow(ok)
+
+
+def same_path(q, b) -> None:
+    """Keep the open rays whose usable samples (their set's corners of their class, not null)
+    share one ray-tree hash and whose leaves and cell the bake did not see change path
+    (PATH_CHANGE); decided once per (set, class) unit. The others are traced (WHY_PATH)."""
+    tab, tree = q.table, q.tree
+    unit_of, first = group_rows(np.stack([b.set_of, b.pc], axis=1))
+    u_set = b.set_of[first]
+    ids = b.sets.ids[u_set]
+    use = (tab.cls[ids] == b.pc[first][:, None]) & ~tab.null[ids]
+    h = tab.tree[ids].astype(np.int64)
+    top = np.where(use, h, -1).max(axis=1)
+    same = top <= np.where(use, h, np.iinfo(np.int64).max).min(axis=1)
+    u_ok = same & ~np.any(tree.dir_flags[b.sets.leaf[u_set]] & PATH_CHANGE, axis=1)
+    ok = u_ok[unit_of] & (tree.vp_flags[b.loc.vnode[b.go]] & PATH_CHANGE == 0)
+    b.trace(b.loc.ray[b.go[~ok]], WHY_PATH)
+    b.narrow(ok)
