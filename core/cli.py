@@ -204,7 +204,7 @@ def _connect(spec):
 
 
 def cmd_bake(args):
-    from .render.exact import SceneTracer
+    from .trace.scene_tracer import SceneTracer
     params = _bake_params(args)
     _check_writable(args.out)
     cluster = _connect(args.scheduler) if args.scheduler else None
@@ -229,22 +229,28 @@ def cmd_info(args):
 
 def cmd_render(args):
     from .render.exact import render_exact, save_render
+    from .scene.camera import Shot
+    from .trace.scene_tracer import SceneTracer
     options = _query_options(args) if args.tree else None
     _check_writable(args.out if args.tree else Path(args.out).parent, folder=True)
     scene = _load(args.scene)
+    shot = Shot(args.camera, args.width, args.height, args.samples)
+    progress = None if args.quiet else _progress("render")
     if args.tree:
         from .render.interpolated import render_tree, save_tree_render
         tree = _load_tree(args, scene)
-        res = render_tree(scene, tree, camera=args.camera, width=args.width, height=args.height,
-                          options=options, reference=not args.no_reference,
-                          workers=args.workers,
-                          progress=None if args.quiet else _progress("render"))
+        res = render_tree(SceneTracer(scene), tree, shot, options=options,
+                          reference=not args.no_reference, workers=args.workers,
+                          progress=progress)
         with command_output():
             paths = save_tree_render(res, args.out)
         print(json.dumps({"written": [str(p) for p in paths], **res.stats["summary"]}, indent=2))
         return 0
-    res = render_exact(scene, camera=args.camera, width=args.width, height=args.height,
-                       workers=args.workers, progress=None if args.quiet else _progress("render"))
+    t0 = time.perf_counter()
+    st = SceneTracer(scene)
+    build_s = time.perf_counter() - t0
+    res = render_exact(st, shot, workers=args.workers, progress=progress)
+    res.stats["summary"]["build_s"] = round(build_s, 4)
     with command_output():
         paths = save_render(res, args.out)
     print(json.dumps({"written": [str(p) for p in paths], **res.stats["summary"]}, indent=2))
@@ -307,7 +313,7 @@ def _load_rays(path):
 
 
 def cmd_trace_rays(args):
-    from .render.exact import SceneTracer
+    from .trace.scene_tracer import SceneTracer
     if args.inside and args.tree:
         raise ValueError("--inside cannot be combined with --tree (the RI-Tree answers rays "
                          "that enter the object from outside)")
@@ -358,9 +364,10 @@ def cmd_validate(args):
 
 
 def cmd_demo(args):
-    from .render.exact import SceneTracer
     from .render.interpolated import render_tree, save_tree_render
+    from .scene.camera import Shot
     from .scene.samples import build
+    from .trace.scene_tracer import SceneTracer
     params, options = _bake_params(args), _query_options(args)
     out = Path(args.out)
     _check_writable(out, folder=True)
@@ -373,9 +380,8 @@ def cmd_demo(args):
           f"baking the RI-Tree (viewpoint depth {args.viewpoint_depth}, direction depth "
           f"{args.direction_depth}) for this camera")
     tree = _bake(scene, args, params, out / "tree.rit", st)
-    res = render_tree(scene, tree, camera=args.camera, options=options,
-                      reference=True, workers=args.workers, st=st,
-                      progress=_progress("interpolated + exact render"))
+    res = render_tree(st, tree, Shot(args.camera), options=options, reference=True,
+                      workers=args.workers, progress=_progress("interpolated + exact render"))
     res.stats["bake"] = tree.meta
     paths = save_tree_render(res, out)
     for p in [out / "tree.rit", *paths]:
@@ -440,6 +446,8 @@ def build_parser():
     p.add_argument("--camera", default=None, help="camera name (default: the first)")
     p.add_argument("--width", type=int, default=None, help="pixels (default: the scene's)")
     p.add_argument("--height", type=int, default=None, help="pixels (default: the scene's)")
+    p.add_argument("--samples", type=int, default=1, help="camera rays per pixel, 1..4096 "
+                   "(default 1: the pixel centre; more: stratified, Blackman-Harris filtered)")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--tree", default=None, help="render through this baked RI-Tree (.rit); "
@@ -560,7 +568,8 @@ def build_parser():
 
 
 def _check_options(args):
-    """Refuse bad worker counts and image sizes before any work (ValueError, one line)."""
+    """Refuse bad worker counts, image sizes and sample counts before any work (ValueError,
+    one line)."""
     from .parallel import workers_default
     from .scene.io import MAX_IMAGE_SIDE
     if hasattr(args, "workers"):
@@ -571,6 +580,9 @@ def _check_options(args):
         if getattr(args, "scheduler", None) and args.workers is not None:
             raise ValueError("--workers and --scheduler exclude each other (the cluster's "
                              "workers trace)")
+    if hasattr(args, "samples"):
+        from .scene.camera import Shot
+        Shot(samples=args.samples)                  # 1..MAX_SAMPLES per pixel
     for flag in ("width", "height", "size"):
         v = getattr(args, flag, None)
         if v is not None and not 1 <= v <= MAX_IMAGE_SIDE:

@@ -96,7 +96,7 @@ def connect(spec: str, timeout: float | None = None) -> "Cluster":
         local = _local_cluster(spec, distributed)
         spec = local.scheduler_address
     else:
-        _probe(spec)
+        _probe(spec, timeout)
     try:
         client = distributed.Client(spec, timeout=timeout)
     except BaseException as e:        # any failure to connect is the address's; Ctrl-C too
@@ -161,10 +161,12 @@ def max_local_workers() -> int:
     return LOCAL_WORKERS_PER_CORE * max(1, os.cpu_count() or 1)
 
 
-def _probe(spec: str) -> None:
+def _probe(spec: str, timeout: float) -> None:
     """ClusterError at once when nothing listens at a TCP (or TLS) scheduler address: the
-    connection is refused or the host does not resolve. An address that does not answer within
-    PROBE_S seconds is left to Dask's own connect timeout; other protocols are not probed."""
+    connection is refused or the host does not resolve. An address that does not take the
+    connection within PROBE_S seconds is left to Dask's own connect timeout. A plain-TCP
+    scheduler speaks first (its handshake): a peer silent for ``timeout`` seconds is not one
+    (Dask would wait for it forever; the dashboard's port is like that)."""
     from distributed.comm import parse_address
     from distributed.comm.addressing import parse_host_port
     try:
@@ -175,12 +177,22 @@ def _probe(spec: str) -> None:
     except ValueError as e:
         raise ClusterError(f"Dask scheduler {spec}: not an address ({_line(e)})") from None
     try:
-        socket.create_connection((host, port), timeout=PROBE_S).close()
+        sock = socket.create_connection((host, port), timeout=PROBE_S)
     except (ConnectionRefusedError, socket.gaierror) as e:
-        why = e.strerror or str(e)
-        raise ClusterError(f"Dask scheduler {spec}: cannot connect ({why})") from None
+        raise ClusterError(f"Dask scheduler {spec}: cannot connect ({e.strerror or e})") from None
     except OSError:                   # a time-out or an unreachable network: Dask decides
-        pass
+        return
+    with sock:
+        if scheme != "tcp":           # TLS: the client speaks first
+            return
+        sock.settimeout(timeout)
+        try:
+            sock.recv(1)
+        except TimeoutError:
+            raise ClusterError(f"Dask scheduler {spec}: no answer within {timeout:g} s (is "
+                               "this a Dask scheduler's address?)") from None
+        except OSError:               # reset or closed: Dask's connect says what it sees
+            pass
 
 
 def _quiet_close(obj) -> None:
@@ -271,7 +283,7 @@ def __getattr__(name):
 
 def _tracer(token: str):
     if token not in _TRACERS:
-        from .render.exact import SceneTracer
+        from .trace.scene_tracer import SceneTracer
         from .scene.io import scene_from_dict
         if token not in _PAYLOADS:
             raise ClusterError("this worker has no scene for the bake (its plugin is missing)")

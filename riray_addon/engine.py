@@ -7,8 +7,11 @@ SceneTracer, then render shares of pixels through core's frame pipeline (render/
 when a fresh tree exists and loads,
 else traced exactly (the user is told; scene.riray.allow_tracing = False turns that into an
 error).
-Passes: Combined, "Traced" (1 where an object ray fell back to tracing) and "Angle Error"
-(degrees between the output ray used and the exact one; traces the object rays again).
+scene.riray.samples camera rays per pixel (core render/film.py: one is the pixel centre; more
+are stratified and filtered with Blackman-Harris, 1.5 px, as Cycles does).
+Passes: Combined, "Traced" (the fraction of a pixel's samples that fell back to
+tracing: 1 or 0 with one sample) and "Angle Error" (degrees between the output ray used and the
+exact one, the mean over the pixel's samples; traces the object rays again).
 Progress / cancel through update_progress / test_break; every failure is reported with
 self.report({'ERROR'}) - never a silent black frame. Chunks run on scene.riray.render_processes
 worker processes (core.parallel.map_chunks: forked children that only run numpy code and
@@ -27,9 +30,9 @@ import bpy
 import numpy as np
 
 from ..core.parallel import map_chunks
+from ..core.render.film import Film
 from ..core.render.frame import ExactAnswerer, shade_share, share_size
-from ..core.render.interpolated import traced_mask
-from ..core.scene.camera import pixel_rays
+from ..core.ritree.answers import is_traced
 from ..core.trace.scene_tracer import SceneTracer
 from . import backend, cache
 from .export import export_camera, export_scene
@@ -108,30 +111,38 @@ class RirayRenderEngine(bpy.types.RenderEngine):
         st = SceneTracer(core_scene)
         answerer, status = self._answerer(depsgraph, target, st)
         build_s = time.perf_counter() - t_start
-        o, d = region_rays(core_scene.cameras[0], int(self.resolution_x),
-                           int(self.resolution_y), region)
+        film = region_film(core_scene.cameras[0], int(self.resolution_x),
+                           int(self.resolution_y), region, scene.riray.samples)
         want_angle = bool(view_layer.riray.use_pass_angle_error) and answerer is not None
         answerer = answerer or ExactAnswerer(st)
 
         def work(a, b):
-            """One share of pixels: colour, traced flags, angle errors, object time."""
-            share = shade_share(st, o[a:b], d[a:b], answerer)
-            return _passes(st, share, (o[a:b], d[a:b]), want_angle)
+            """One share of rays: its pixels' colour, traced and angle sums; object time and
+            ray counts."""
+            rays = film.rays(a, b)
+            color, tr, ang, obj_s, hits = _passes(st, shade_share(st, *rays, answerer), rays,
+                                                  want_angle)
+            part = film.develop(a, b, {"color": color}, {"traced": tr, "angle": ang})
+            return part, obj_s, hits, int(tr.sum())
 
         t_render = time.perf_counter()
         procs = render_processes(scene.riray.render_processes)
         try:
-            parts = map_chunks(work, len(o), share_size(len(o), procs, SHARES_PER_WORKER),
-                               procs, self._progress)
+            parts = map_chunks(work, film.n_rays,
+                               share_size(film.n_rays, procs, SHARES_PER_WORKER), procs,
+                               self._progress)
         except _Cancelled:
             self.report({"WARNING"}, "render cancelled")
             return
-        color, traced, angle = (np.concatenate([p[i] for p in parts]) for i in range(3))
-        hits = sum(p[4] for p in parts)
+        dev = film.join(p[0] for p in parts)
+        color = dev.images["color"].reshape(-1, 3)
+        traced, angle = ((dev.box[k].ravel() / film.samples).astype(np.float32)
+                         for k in ("traced", "angle"))
+        hits, n_traced = sum(p[2] for p in parts), sum(p[3] for p in parts)
         stats = {"frame": scene.frame_current, "width": w, "height": h,
-                 "object_pixels": hits, "traced_pixels": int(traced.sum()),
-                 "traced_fraction": int(traced.sum()) / hits if hits else 0.0,
-                 "object_time_s": sum(p[3] for p in parts),
+                 "samples": film.samples, "object_pixels": hits, "traced_pixels": n_traced,
+                 "traced_fraction": n_traced / hits if hits else 0.0,
+                 "object_time_s": sum(p[1] for p in parts),
                  "render_time_s": time.perf_counter() - t_render, "export_build_s": build_s,
                  "tree": status["state"],
                  "mode": "exact" if isinstance(answerer, ExactAnswerer) else "tree",
@@ -224,22 +235,22 @@ def render_region(render, width: int, height: int) -> tuple[int, int, int, int]:
     return x0, y0, max(x1 - x0, 1), max(y1 - y0, 1)
 
 
-def region_rays(camera, width: int, height: int, region):
-    """The camera rays of the ``region``'s pixels, top row first."""
+def region_film(camera, width: int, height: int, region, samples: int) -> Film:
+    """The film of the ``region``'s pixels (bottom-up, as Blender counts them) of the frame,
+    ``samples`` camera rays per pixel."""
     x0, y0, w, h = region
-    py, px = np.mgrid[height - y0 - h:height - y0, x0:x0 + w].astype(np.float64) + 0.5
-    return pixel_rays(camera, width, height, px, py)
+    return Film(camera, width, height, samples, (x0, height - y0 - h, w, h))
 
 
 def _passes(st, share, rays, want_angle: bool):
     """A rendered share's pass values: (colour, traced flag, angle error in degrees against
-    exact tracing when ``want_angle``, object CPU seconds, object pixels)."""
+    exact tracing when ``want_angle``, object CPU seconds, object rays)."""
     n = len(share.color)
     tr = np.zeros(n, np.float32)
     ang = np.zeros(n, np.float32)
     hit, ans = share.hit, share.answer
     if len(hit) and ans.answer is not None:
-        tr[hit] = traced_mask(ans.answer)[ans.rays.hit]
+        tr[hit] = is_traced(ans.answer)[ans.rays.hit]
         if want_angle:
             used = ans.rays.take(ans.rays.hit)
             exact = st.object_function(rays[0][hit], rays[1][hit])

@@ -398,9 +398,8 @@ def _surface_context(obj, matrix: np.ndarray, random_id: int) -> SurfaceContext:
                           random=(random_id & 0xFFFFFFFF) / float(0xFFFFFFFF))
 
 
-def _env_meshes(obj, depsgraph, report: Report, materials: dict,
-                cache: "matmap.EnvironmentMaterials", matrix=None, name: str | None = None,
-                random_id: int = 0) -> list[Mesh]:
+def _env_meshes(obj, depsgraph, materials: dict, cache: "matmap.EnvironmentMaterials",
+                matrix=None, name: str | None = None, random_id: int = 0) -> list[Mesh]:
     with EvaluatedMesh(obj, depsgraph, matrix) as em:
         if not em.has_faces:
             return []
@@ -517,8 +516,7 @@ def export_environment(depsgraph, exclude, report: Report):
         matrix = inst.matrix_world.copy()
         if obj.type in MESH_LIKE:
             rid = int(inst.random_id) if inst.is_instance else object_random_id(orig.name)
-            meshes.extend(_env_meshes(obj, depsgraph, report, materials, cache, matrix, name,
-                                      rid))
+            meshes.extend(_env_meshes(obj, depsgraph, materials, cache, matrix, name, rid))
         elif obj.type == "LIGHT":
             light = export_light(obj, report, matrix, name)
             if light is not None:

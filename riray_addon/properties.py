@@ -12,6 +12,8 @@ render-time or viewpoint-selection settings the RI-Tree module reads from the sa
 """
 
 
+import math
+
 import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
                        IntProperty, PointerProperty, StringProperty)
@@ -58,6 +60,17 @@ def _mark_custom(self, _context) -> None:
         self.quality = "CUSTOM"
 
 
+DEG = math.pi / 180.0
+
+
+def _shown_as(stored: str, scale: float, **kw):
+    """The panel's field for the saved setting ``stored``: its value times ``scale`` (degrees
+    shown as an angle, a fraction as percent). Not saved itself, so files keep ``stored``."""
+    return FloatProperty(get=lambda self: getattr(self, stored) * scale,
+                         set=lambda self, value: setattr(self, stored, value / scale),
+                         subtype="ANGLE" if scale == DEG else "PERCENTAGE", **kw)
+
+
 class RIRAY_PG_spline_group(bpy.types.PropertyGroup):
     """Class group of one spline (by index): splines with the same group >= 0 form one class."""
 
@@ -69,116 +82,152 @@ class RIRAY_PG_spline_group(bpy.types.PropertyGroup):
 class RIRAY_PG_object(bpy.types.PropertyGroup):
     quality: EnumProperty(
         name="Quality",
-        items=[("DRAFT", "Draft", "Depths 3 / 4, refine 1, tolerance 1 deg: a quick look"),
-               ("DEFAULT", "Default", "Depths 4 / 5, refine 2, tolerance 0.5 deg: about a "
-                                      "minute for a sample scene's cameras on two cores"),
-               ("PAPER", "Paper", "Depths 5 / 6, refine 2, tolerance 0.5 deg: the paper's "
-                                  "tree, several times slower"),
-               ("CUSTOM", "Custom", "The depths and tolerance as set below")],
+        items=[("DRAFT", "Draft", "Coarsest tree: the quickest bake and smallest cache; more "
+                                  "rays are traced exactly at render time"),
+               ("DEFAULT", "Default", "About a minute for a sample scene's three cameras on "
+                                      "two cores"),
+               ("PAPER", "Paper", "The finest tree: several times Default's bake time and "
+                                  "cache size, the fewest rays traced at render time"),
+               ("CUSTOM", "Custom", "The depths and tolerance as set under Advanced")],
         default="DEFAULT", update=_apply_quality,
-        description="Bake preset: sets viewpoint / direction depth, viewpoint refine and "
-                    "bake tolerance")
+        description="How fine a tree to bake. Finer trees take longer and use more disk and "
+                    "memory, and leave fewer rays to trace exactly at render time")
     # ---- tree parameters (names of core BakeParams)
     viewpoint_depth: IntProperty(name="Viewpoint depth", default=4, min=1, max=9,
                                  update=_mark_custom,
-                                 description="Depth of the viewpoint quadtrees on the faces of "
-                                             "the object's bounding box (paper: 5)")
+                                 description="How finely the camera positions around the object "
+                                             "are divided. One more level: about 4 times the "
+                                             "bake time and cache size, fewer rays traced at "
+                                             "render time")
     direction_depth: IntProperty(name="Direction depth", default=5, min=1, max=10,
                                  update=_mark_custom,
-                                 description="Maximum depth of the direction quadtrees "
-                                             "(paper: 6)")
+                                 description="How finely the directions seen from each camera "
+                                             "position may be divided. One more level: up to 4 "
+                                             "times the bake time and cache size where the "
+                                             "object needs it, smaller interpolation errors")
     min_direction_depth: IntProperty(name="Min direction depth", default=1, min=0, max=10,
-                                     description="Direction trees are split at least this deep")
-    tolerance_deg: FloatProperty(name="Bake tolerance", default=0.5, min=1e-4, max=45.0,
-                                 precision=3, subtype="NONE", update=_mark_custom,
-                                 description="Split a cell while the interpolated output ray at "
-                                             "its midpoint misses the traced one by more than "
-                                             "this angle (degrees)")
-    tolerance_dist: FloatProperty(name="Distance tolerance", default=0.002, min=1e-6, max=0.5,
-                                  precision=4,
-                                  description="... or its origin / first hit by more than this "
-                                              "fraction of the object's box diagonal")
+                                     description="Directions are divided at least this finely "
+                                                 "everywhere, even where the object looks "
+                                                 "simple. Higher: a safer tree, more bake time "
+                                                 "and cache")
+    tolerance_deg: FloatProperty(name="Angle tolerance (degrees)", default=0.5, min=1e-4,
+                                 max=45.0, precision=3, update=_mark_custom, options={"HIDDEN"},
+                                 description="Saved value of Angle tolerance, in degrees")
+    tolerance_dist: FloatProperty(name="Distance tolerance (fraction)", default=0.002,
+                                  min=1e-6, max=0.5, precision=4, options={"HIDDEN"},
+                                  description="Saved value of Distance tolerance, a fraction of "
+                                              "the object's bounding-box diagonal")
+    tolerance_angle: _shown_as(
+        "tolerance_deg", DEG, name="Angle tolerance", min=1e-4 * DEG, max=45.0 * DEG,
+        precision=3, description="The bake divides a region until rays interpolated there "
+                                 "leave within this angle of the exact ones. Smaller: more "
+                                 "accurate renders, a longer bake and a bigger cache")
+    tolerance_dist_percent: _shown_as(
+        "tolerance_dist", 100.0, name="Distance tolerance", min=1e-4, max=50.0, precision=3,
+        description="... and leave from within this distance of the exact ones, in percent "
+                    "of the object's bounding-box diagonal. Smaller: more accurate, a longer "
+                    "bake and a bigger cache")
     search_steps: IntProperty(name="Search steps", default=4, min=0, max=30,
-                              description="Binary-search steps for the extra samples of "
-                                          "two-class cells (paper 4.3)")
+                              description="Where two surfaces of the object meet inside a "
+                                          "region, the bake searches for the edge with this "
+                                          "many halvings. More: sharper edges between them, "
+                                          "slightly more bake time")
     viewpoint_refine: IntProperty(name="Viewpoint refine", default=2, min=0, max=4,
                                   update=_mark_custom,
-                                  description="Camera bakes: extra viewpoint levels where the "
-                                              "cameras' rays lack interpolants")
+                                  description="Extra levels of camera positions, only where the "
+                                              "scene cameras' rays would otherwise be traced "
+                                              "or come out too inaccurate. Each level: more "
+                                              "bake time and cache, fewer rays traced at "
+                                              "render time (camera bakes only)")
     finest_min_traced: IntProperty(name="Finest level where traced", default=0, min=0,
                                    max=1 << 30,
-                                   description="Camera bakes: the finest viewpoint level splits "
-                                               "only cells through which at least this many "
-                                               "camera rays would be traced (0: by the rule of "
-                                               "the other levels; 20 puts the costliest level "
-                                               "where tracing costs most)")
+                                   description="The finest level of camera positions goes only "
+                                               "where at least this many camera rays would be "
+                                               "traced (0: wherever the other levels would). "
+                                               "Higher: a shorter bake and smaller cache, more "
+                                               "tracing at render time (camera bakes only)")
     # ---- render-time interpolation rules (core QueryOptions; no re-bake needed)
     policy: EnumProperty(
         name="Policy",
-        items=[("RI", "Ray interpolants", "The paper's rules"),
-               ("RAYTREE", "Ray tree", "Bala et al.'s ray-tree rule")],
-        default="RI")
+        items=[("RI", "Ray interpolants", "Interpolate rays that pass the rules below (the "
+                                          "paper's method)"),
+               ("RAYTREE", "Ray tree", "Bala et al.'s older rule: interpolate only where the "
+                                       "nearby samples bounce off the same surfaces")],
+        default="RI", description="Which rule decides whether a ray is interpolated or traced")
     use_angle_threshold: BoolProperty(name="Angle threshold", default=False,
-                                      description="The paper's rule: trace when interpolants' "
-                                                  "output rays are further apart than the "
-                                                  "angle below (Max error is the default)")
-    angle_deg: FloatProperty(name="Angle", default=20.0, min=0.0, max=180.0,
-                             description="Pairwise angle threshold between interpolants "
-                                         "(degrees)")
+                                      description="Trace a ray whose nearby samples leave the "
+                                                  "object further apart than the angle below. "
+                                                  "Max error is the better rule; this one is "
+                                                  "the paper's")
+    angle_deg: FloatProperty(name="Angle (degrees)", default=20.0, min=0.0, max=180.0,
+                             options={"HIDDEN"}, description="Saved value of Angle, in degrees")
+    angle: _shown_as("angle_deg", DEG, name="Angle", min=0.0, max=180.0 * DEG, precision=2,
+                     description="Largest angle between the nearby samples' rays for which a "
+                                 "ray is interpolated. Smaller: more accurate, more rays "
+                                 "traced, slower renders")
     use_distance_threshold: BoolProperty(name="Distance threshold", default=False,
-                                         description="Trace when interpolants' output origins are "
-                                                     "further apart than the distance below")
-    distance: FloatProperty(name="Distance", default=0.05, min=0.0, max=1.0, precision=4,
-                            description="Pairwise distance threshold, fraction of the object's "
-                                        "box diagonal")
+                                         description="Trace a ray whose nearby samples leave the "
+                                                     "object further apart than the distance "
+                                                     "below")
+    distance: FloatProperty(name="Distance (fraction)", default=0.05, min=0.0, max=1.0,
+                            precision=4, options={"HIDDEN"},
+                            description="Saved value of Distance, a fraction of the object's "
+                                        "bounding-box diagonal")
+    distance_percent: _shown_as(
+        "distance", 100.0, name="Distance", min=0.0, max=100.0, precision=2,
+        description="Largest distance between where the nearby samples leave the object, in "
+                    "percent of its bounding-box diagonal. Smaller: more accurate, more rays "
+                    "traced, slower renders")
     use_extrapolation: BoolProperty(name="Extrapolation", default=False,
-                                    description="Allow extrapolating slightly outside the "
-                                                "interpolants' triangle")
+                                    description="Also interpolate rays slightly outside their "
+                                                "nearby samples (fewer rays traced, less "
+                                                "accurate at edges)")
     extrapolation: FloatProperty(name="Extrapolation", default=0.1, min=0.0, max=1.0,
-                                 description="Allowed barycentric distance below 0")
+                                 subtype="FACTOR",
+                                 description="How far outside the nearby samples a ray may "
+                                             "lie, as a share of their spacing")
     use_null_interp: BoolProperty(name="Interpolate null rays", default=False,
-                                  description="A ray whose interpolants are all trapped "
-                                              "(null) is answered null instead of traced "
-                                              "(faster; a trapped region can hide an exit "
-                                              "no sample shows)")
+                                  description="Answer a ray as trapped inside the object when "
+                                              "all its nearby samples are, instead of tracing "
+                                              "it: faster, but can miss a way out no sample "
+                                              "shows")
     use_max_error: BoolProperty(name="Max error", default=True,
-                                description="Interpolate a ray only where the errors the bake "
-                                            "measured in its four direction leaves and its "
-                                            "viewpoint cell are within the angle below, else "
-                                            "trace it (a tree baked without cameras has no "
-                                            "viewpoint-cell errors: it uses the angle "
-                                            "threshold, 20 degrees unless set)")
-    max_error_deg: FloatProperty(name="Max error", default=DEFAULT_MAX_ERROR_DEG, min=0.0,
-                                 max=180.0,
-                                 precision=3,
-                                 description="Largest baked error of an interpolated ray "
-                                             "(degrees)")
+                                description="Interpolate a ray only where the bake measured "
+                                            "errors within the angle below around it; trace it "
+                                            "elsewhere. A tree baked without the scene cameras "
+                                            "uses the angle threshold instead (20° unless set)")
+    max_error_deg: FloatProperty(name="Max error (degrees)", default=DEFAULT_MAX_ERROR_DEG,
+                                 min=0.0, max=180.0, precision=3, options={"HIDDEN"},
+                                 description="Saved value of Max error, in degrees")
+    max_error: _shown_as("max_error_deg", DEG, name="Max error", min=0.0, max=180.0 * DEG,
+                         precision=2,
+                         description="Largest error the bake measured that an interpolated "
+                                     "ray may have. Smaller: more accurate, more rays traced, "
+                                     "slower renders")
     use_mirror_normal: BoolProperty(name="Reflect about normal", default=True,
-                                    description="Mirrors: a ray whose usable samples all "
-                                                "reflect once leaves along the view ray "
-                                                "reflected about its normal (interpolated, or "
-                                                "exact with Exact mirror hits), instead of "
-                                                "the interpolated output ray")
+                                    description="Mirrors: reflect the view ray about the "
+                                                "interpolated surface normal instead of "
+                                                "interpolating the reflected ray. Sharper "
+                                                "reflections at about the same cost")
     use_mirror_newton: BoolProperty(name="Exact mirror hits", default=True,
-                                    description="With Reflect about normal, where those "
-                                                "samples share one NURBS patch: reflect at "
-                                                "the exact hit Newton's method finds from the "
-                                                "interpolated patch parameters (exact "
-                                                "reflections, more time per ray; also answers "
-                                                "such rays outside the error tolerance "
-                                                "unless the bake saw their path change)")
+                                    description="Mirrors: find the exact point and normal on "
+                                                "the surface before reflecting. Exact "
+                                                "reflections, more time per ray; fewer rays "
+                                                "are traced")
     use_path_identity: BoolProperty(name="Path identity", default=False,
-                                    description="Trace a ray whose usable samples follow "
-                                                "different paths (ray-tree hash), or whose "
-                                                "leaves or viewpoint cell the bake saw change "
-                                                "path")
+                                    description="Trace a ray whose nearby samples take "
+                                                "different paths through the object (hit "
+                                                "different surfaces in a different order). "
+                                                "Safer at edges, more rays traced")
     # ---- viewpoint selection
     bake_for_cameras: BoolProperty(name="Bake for scene cameras", default=True,
-                                   description="Only bake the viewpoint cells the scene cameras "
-                                               "look from (over the frame range)")
+                                   description="Bake only what the scene's cameras see. Off: "
+                                               "bake every viewpoint around the object, many "
+                                               "times the time and cache")
     use_frame_range: BoolProperty(name="Frame range", default=True,
-                                  description="Include camera positions over the scene's frame "
-                                              "range (else the current frame only)")
+                                  description="Cover the cameras' positions over the whole "
+                                              "frame range (else the current frame only): more "
+                                              "bake time and cache for a moving camera")
     # ---- cache
     cache_file: StringProperty(name="Cache file", subtype="FILE_PATH", default="",
                                options=compat.BLEND_RELATIVE,
@@ -233,6 +282,10 @@ class RIRAY_PG_scene(bpy.types.PropertyGroup):
     allow_tracing: BoolProperty(name="Trace without tree", default=True,
                                 description="Trace the object exactly when it has no RI-Tree or "
                                             "the tree is stale (else the render fails)")
+    samples: IntProperty(name="Samples", default=1, min=1, max=4096, soft_max=64,
+                         description="Camera rays per pixel: 1 is the pixel centre; more are "
+                                     "stratified in the pixel and filtered (Blackman-Harris, "
+                                     "1.5 px) for anti-aliasing")
     render_processes: IntProperty(name="Processes", default=0, min=0, max=256,
                                   description="Worker processes for RI-Tree Preview renders "
                                               "(0: automatic - every core on Linux, one "

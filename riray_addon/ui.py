@@ -1,5 +1,6 @@
-"""Panels: "Bake RI-Tree" (Properties > Object and the 3D View sidebar, tab "RI-Tree"), spline
-classes, material settings, the engine's render / pass / world settings, and a progress bar in
+"""Panels: "Bake RI-Tree" (Properties > Object and the 3D View sidebar, tab "RI-Tree") with its
+sub-panels Advanced (tree settings) and Render-time Rules (no re-bake needed), spline classes,
+material settings, the engine's render / pass / world settings, and a progress bar in
 the status bar while a bake runs."""
 
 from __future__ import annotations
@@ -29,53 +30,52 @@ def _job_line(layout, job) -> None:
 
 
 def draw_bake_panel(layout, context) -> None:
+    """The object's "Bake RI-Tree" panel: quality, the bake / cancel and estimate rows, the
+    cache's state, cameras and cache file; the sub-panels hold the rest."""
     obj = context.object
     if obj is None or obj.type not in TARGET_TYPES:
         layout.label(text="Select a NURBS surface, mesh or curve object", icon="INFO")
         return
     p = obj.riray
-    col = layout.column(align=True)
-    col.label(text="Tree", icon="OUTLINER_DATA_LIGHTPROBE")
-    col.prop(p, "quality")
-    col.prop(p, "viewpoint_depth")
-    col.prop(p, "direction_depth")
-    col.prop(p, "min_direction_depth")
-    col = layout.column(align=True)
-    col.prop(p, "tolerance_deg")
-    col.prop(p, "tolerance_dist")
-    col.prop(p, "search_steps")
-    col = layout.column(align=True)
-    col.label(text="Interpolation (render time)")
-    col.prop(p, "policy", text="")
-    for use, val in (("use_angle_threshold", "angle_deg"), ("use_distance_threshold", "distance"),
-                     ("use_extrapolation", "extrapolation"), ("use_max_error", "max_error_deg")):
-        row = col.row(align=True)
-        row.prop(p, use, text="")
-        sub = row.row(align=True)
-        sub.enabled = getattr(p, use)
-        sub.prop(p, val, text=p.bl_rna.properties[use].name)
-    col.prop(p, "use_null_interp")
-    col.prop(p, "use_path_identity")
-    col.prop(p, "use_mirror_normal")
-    sub = col.row()
-    sub.enabled = p.use_mirror_normal
-    sub.prop(p, "use_mirror_newton")
-    col = layout.column(align=True)
+    layout.prop(p, "quality")
+    _draw_actions(layout, obj, p)
+    _draw_status(layout.box(), context, obj, p)
+    col = layout.column(heading="Cameras")
     col.prop(p, "bake_for_cameras")
     sub = col.row()
-    sub.enabled = p.bake_for_cameras
+    sub.active = p.bake_for_cameras
     sub.prop(p, "use_frame_range")
-    sub = col.row()
-    sub.enabled = p.bake_for_cameras
-    sub.prop(p, "viewpoint_refine")
-    sub = col.row()
-    sub.enabled = p.bake_for_cameras and p.viewpoint_refine > 0
-    sub.prop(p, "finest_min_traced")
     layout.prop(p, "cache_file", text="Cache")
 
+
+def _draw_actions(layout, obj, p) -> None:
+    """Bake and Clear (while baking: the progress bar and Cancel), then the estimate row."""
     job = JOBS.get(obj.name)
-    box = layout.box()
-    # -- status of the cache
+    if job is not None and job.running:
+        _job_line(layout, job)
+        row = layout.row()
+        row.label(text=job.message)
+        row.operator("riray.bake_cancel", text="Cancel", icon="CANCEL").object = obj.name
+    else:
+        if job is not None and job.state == "failed":
+            layout.label(text=f"Last bake failed: {job.error}", icon="ERROR")
+        row = layout.row(align=True)
+        row.scale_y = 1.4
+        op = row.operator("riray.bake", text="Bake", icon="RENDER_STILL")
+        op.object = obj.name
+        op.wait = False
+        row.operator("riray.bake_clear", text="Clear", icon="TRASH").object = obj.name
+    row = layout.row()
+    if p.estimate_time_s >= 0 and p.estimate_key == estimate_key(obj):
+        row.label(text=f"Estimate: {format_duration(p.estimate_time_s)}, "
+                       f"{format_bytes(p.estimate_bytes)}")
+    else:
+        row.label(text="Estimate: -")
+    row.operator("riray.bake_estimate", text="", icon="TIME").object = obj.name
+
+
+def _draw_status(box, context, obj, p) -> None:
+    """Whether the cache is up to date, its size and bake time."""
     try:
         status = cache.tree_status(obj, context.evaluated_depsgraph_get())
     except ExportError as exc:
@@ -95,29 +95,56 @@ def draw_bake_panel(layout, context) -> None:
                        f"({status['doc'].get('backend', '?')})")
     if not bpy.data.filepath and not p.cache_file:
         box.label(text="Save the .blend to keep the cache beside it", icon="INFO")
-    # -- estimate
-    row = box.row()
-    if p.estimate_time_s >= 0 and p.estimate_key == estimate_key(obj):
-        row.label(text=f"Estimate: {format_duration(p.estimate_time_s)}, "
-                       f"{format_bytes(p.estimate_bytes)}")
-    else:
-        row.label(text="Estimate: -")
-    row.operator("riray.bake_estimate", text="", icon="TIME").object = obj.name
-    # -- bake / cancel / clear
-    if job is not None and job.running:
-        _job_line(box, job)
-        row = box.row()
-        row.label(text=job.message)
-        row.operator("riray.bake_cancel", text="Cancel", icon="CANCEL").object = obj.name
-    else:
-        if job is not None and job.state == "failed":
-            box.label(text=f"Last bake failed: {job.error}", icon="ERROR")
-        row = box.row(align=True)
-        row.scale_y = 1.4
-        op = row.operator("riray.bake", text="Bake", icon="RENDER_STILL")
-        op.object = obj.name
-        op.wait = False
-        row.operator("riray.bake_clear", text="Clear", icon="TRASH").object = obj.name
+
+
+def draw_advanced(layout, p) -> None:
+    """Tree settings the quality preset sets, and the finer ones it leaves alone."""
+    col = layout.column(align=True)
+    col.prop(p, "viewpoint_depth")
+    col.prop(p, "direction_depth")
+    col.prop(p, "min_direction_depth", text="Min")
+    col = layout.column(align=True)
+    col.prop(p, "tolerance_angle")
+    col.prop(p, "tolerance_dist_percent")
+    layout.prop(p, "search_steps")
+    col = layout.column(align=True)
+    col.active = p.bake_for_cameras
+    col.prop(p, "viewpoint_refine")
+    sub = col.row()
+    sub.active = p.bake_for_cameras and p.viewpoint_refine > 0
+    sub.prop(p, "finest_min_traced")
+
+
+def draw_render_rules(layout, p) -> None:
+    """When a ray is interpolated and when it is traced: read at render time, no re-bake."""
+    layout.label(text="Used at render time: no re-bake needed", icon="INFO")
+    layout.prop(p, "policy")
+    for use, value in (("use_max_error", "max_error"), ("use_angle_threshold", "angle"),
+                       ("use_distance_threshold", "distance_percent"),
+                       ("use_extrapolation", "extrapolation")):
+        row = layout.row(heading=p.bl_rna.properties[use].name)
+        row.prop(p, use, text="")
+        sub = row.row()
+        sub.active = getattr(p, use)
+        sub.prop(p, value, text="")
+    col = layout.column(heading="Rays")
+    col.prop(p, "use_null_interp")
+    col.prop(p, "use_path_identity")
+    col = layout.column(heading="Mirrors")
+    col.prop(p, "use_mirror_normal")
+    sub = col.row()
+    sub.active = p.use_mirror_normal
+    sub.prop(p, "use_mirror_newton")
+
+
+def _split(layout):
+    layout.use_property_split = True
+    layout.use_property_decorate = False
+    return layout
+
+
+def _is_target(obj) -> bool:
+    return obj is not None and obj.type in TARGET_TYPES
 
 
 class RIRAY_PT_bake_object(bpy.types.Panel):
@@ -129,12 +156,10 @@ class RIRAY_PT_bake_object(bpy.types.Panel):
 
     @classmethod
     def poll(cls, context):
-        return context.object is not None and context.object.type in TARGET_TYPES
+        return _is_target(context.object)
 
     def draw(self, context):
-        self.layout.use_property_split = True
-        self.layout.use_property_decorate = False
-        draw_bake_panel(self.layout, context)
+        draw_bake_panel(_split(self.layout), context)
 
 
 class RIRAY_PT_bake_view3d(bpy.types.Panel):
@@ -145,13 +170,73 @@ class RIRAY_PT_bake_view3d(bpy.types.Panel):
     bl_category = "RI-Tree"
 
     def draw(self, context):
-        draw_bake_panel(self.layout, context)
+        draw_bake_panel(_split(self.layout), context)
+
+
+class _BakeSubPanel:
+    """A closed sub-panel of the bake panel, shown for objects that can be baked."""
+    bl_options = {"DEFAULT_CLOSED"}
+
+    @classmethod
+    def poll(cls, context):
+        return _is_target(context.object)
+
+
+class _InProperties(_BakeSubPanel):
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "object"
+    bl_parent_id = "RIRAY_PT_bake_object"
+
+
+class _InSidebar(_BakeSubPanel):
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "RI-Tree"
+    bl_parent_id = "RIRAY_PT_bake_view3d"
+
+
+class RIRAY_PT_bake_advanced(_InProperties, bpy.types.Panel):
+    bl_label = "Advanced"
+    bl_idname = "RIRAY_PT_bake_advanced"
+
+    def draw(self, context):
+        draw_advanced(_split(self.layout), context.object.riray)
+
+
+class RIRAY_PT_bake_advanced_view3d(_InSidebar, bpy.types.Panel):
+    bl_label = "Advanced"
+    bl_idname = "RIRAY_PT_bake_advanced_view3d"
+
+    def draw(self, context):
+        draw_advanced(_split(self.layout), context.object.riray)
+
+
+class RIRAY_PT_render_rules(_InProperties, bpy.types.Panel):
+    bl_label = "Render-time Rules"
+    bl_idname = "RIRAY_PT_render_rules"
+
+    def draw(self, context):
+        draw_render_rules(_split(self.layout), context.object.riray)
+
+
+class RIRAY_PT_render_rules_view3d(_InSidebar, bpy.types.Panel):
+    bl_label = "Render-time Rules"
+    bl_idname = "RIRAY_PT_render_rules_view3d"
+
+    def draw(self, context):
+        draw_render_rules(_split(self.layout), context.object.riray)
+
+
+def _spline_number(groups, item) -> int:
+    return next(i for i, g in enumerate(groups) if g == item)
 
 
 class RIRAY_UL_splines(bpy.types.UIList):
-    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index):
+    def draw_item(self, _context, layout, data, item, _icon, _active_data, _active_propname):
         row = layout.row(align=True)
-        row.label(text=f"Spline {index}", icon="SURFACE_DATA")
+        row.label(text=f"Spline {_spline_number(data.spline_groups, item)}",
+                  icon="SURFACE_DATA")
         row.prop(item, "group", text="Class")
 
 
@@ -221,6 +306,7 @@ class RIRAY_PT_render(_EnginePanel, bpy.types.Panel):
         layout.use_property_split = True
         layout.prop(s, "target")
         layout.prop(s, "allow_tracing")
+        layout.prop(s, "samples")
         layout.prop(s, "render_processes")
         layout.prop(s, "max_events")
         from . import engine
@@ -265,7 +351,9 @@ def draw_statusbar(self, context):
             row.operator("riray.bake_cancel", text="", icon="CANCEL").object = job.object_name
 
 
-CLASSES = (RIRAY_PT_bake_object, RIRAY_PT_bake_view3d, RIRAY_UL_splines, RIRAY_PT_classes,
+CLASSES = (RIRAY_PT_bake_object, RIRAY_PT_bake_view3d, RIRAY_PT_bake_advanced,
+           RIRAY_PT_bake_advanced_view3d, RIRAY_PT_render_rules, RIRAY_PT_render_rules_view3d,
+           RIRAY_UL_splines, RIRAY_PT_classes,
            RIRAY_PT_material, RIRAY_PT_render, RIRAY_PT_passes, RIRAY_PT_world)
 
 

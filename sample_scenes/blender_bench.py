@@ -46,9 +46,11 @@ import numpy as np  # noqa: E402
 from riray.bench.compare import whitted_scene  # noqa: E402
 from riray.bench.exact_bench import machine  # noqa: E402
 from riray.bench.ritree_bench import BenchConfig, _json_safe, bake_view  # noqa: E402
-from riray.render.exact import SceneTracer, render_exact  # noqa: E402
+from riray.render.exact import render_exact  # noqa: E402
 from riray.render.image import write_png  # noqa: E402
 from riray.render.interpolated import psnr, render_tree  # noqa: E402
+from riray.scene.camera import Shot  # noqa: E402
+from riray.trace.scene_tracer import SceneTracer  # noqa: E402
 from riray.ritree.query import QueryOptions  # noqa: E402
 from riray.scene.samples import SAMPLES, build  # noqa: E402
 
@@ -175,15 +177,15 @@ def bench_scene(name, view, size, spps, ref_spp, workers, out: Path, tmp: Path, 
     st = SceneTracer(core)
     build_s = time.perf_counter() - t0
     cam = core.camera(view)
-    ex = render_exact(core, camera=view, width=size, height=size, workers=workers, st=st)
+    ex = render_exact(st, Shot(camera=view, width=size, height=size), workers=workers)
     images["riray_exact"] = ex.image
     rows.append({"renderer": "riray", "label": "riray_exact", "frame_s": ex.stats["summary"]["wall_s"],
                  "build_s": build_s})
     cfg = BenchConfig()
     params = cfg.bake_params(cfg.viewpoint_depth, cfg.direction_depth, cfg.tolerance)
     tree, brec = bake_view(st, core, cam, size, params, workers, tmp)
-    it = render_tree(core, tree, camera=view, width=size, height=size,
-                     options=QueryOptions(), reference=False, workers=workers, st=st)
+    it = render_tree(st, tree, Shot(camera=view, width=size, height=size),
+                     options=QueryOptions(), reference=False, workers=workers)
     images["riray_interpolated"] = it.image
     rows.append({"renderer": "riray", "label": "riray_interpolated",
                  "frame_s": it.stats["summary"]["wall_s"], "build_s": build_s,

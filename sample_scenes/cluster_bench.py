@@ -28,7 +28,7 @@ import numpy as np
 import psutil
 
 from riray import cluster as C
-from riray.render.exact import SceneTracer
+from riray.trace.scene_tracer import SceneTracer
 from riray.ritree import bake as B
 from riray.ritree import tree as ritree
 from riray.ritree.tree import BakeParams
@@ -123,17 +123,17 @@ def _first_pass(st, params, threads):
     plan, kept = _Plan(threads), {}
 
     def keep(baker, trees):
-        n = baker.cluster.shard_count(len(trees))
+        n = baker.cfg.cluster.shard_count(len(trees))
         kept["baker"], kept["blocks"] = baker, [b for b in np.array_split(trees, n) if len(b)]
         raise StopIteration
-    real, B._Baker._bake_sharded = B._Baker._bake_sharded, keep
+    real, B.ShardedPass.bake = B.ShardedPass.bake, keep
     t0 = time.perf_counter()
     try:
         B.bake(st, params, None, cluster=plan)
     except StopIteration:
         pass
     finally:
-        B._Baker._bake_sharded = real
+        B.ShardedPass.bake = real
     return kept["baker"], kept["blocks"], time.perf_counter() - t0
 
 
@@ -166,7 +166,7 @@ def project(args):
             for j in np.linspace(0, len(idx) - 1, max(1, args.sample // len(sizes))).round():
                 c0 = time.process_time()
                 baked.setdefault(n, []).append(
-                    B.bake_shard(st, params, baker._shard_task(blocks[idx[int(j)]])))
+                    B.bake_shard(st, params, baker.task(blocks[idx[int(j)]])))
                 cpu += time.process_time() - c0
                 trees_baked += n
         per_tree = cpu / trees_baked
@@ -176,7 +176,7 @@ def project(args):
         samples = sum(len(r["patch"]) for r in results)
         # the client's touching of the merge buffers, done while it waits for the shards
         t0 = time.perf_counter()
-        buffers = baker.merge_buffers(trees)
+        buffers = baker.buffers(trees)
         for r, b in zip(results, blocks):
             buffers.add(r, len(b))
         while True:
@@ -186,7 +186,7 @@ def project(args):
                 break
         touch = time.perf_counter() - t0
         t0 = time.perf_counter()
-        baker._merge(blocks, results, buffers)
+        baker.merge(blocks, results, buffers)
         merge = time.perf_counter() - t0
         shard_s = per_tree * trees / len(blocks)
         waves = math.ceil(len(blocks) / w)

@@ -23,9 +23,11 @@ import numpy as np
 
 from riray.render.exact import render_exact
 from riray.scene import samples
+from riray.scene.camera import Shot
 from riray.scene.graph import GraphNode, Link, ShaderGraph
 from riray.scene.model import Material, World
 from riray.trace import shading
+from riray.trace.scene_tracer import SceneTracer
 
 
 def texture_graph(mat: Material) -> ShaderGraph:
@@ -105,7 +107,7 @@ def measure(scene, size: int) -> tuple[np.ndarray, dict]:
             t.wrap(shading, "eval_world", "world_s"),
             t.wrap(shading.Environment, "shade_rays", "environment_s")]
     try:
-        res = render_exact(scene, width=size, height=size, workers=1)
+        res = render_exact(SceneTracer(scene), Shot(width=size, height=size), workers=1)
     finally:
         for u in undo:
             u()

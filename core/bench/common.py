@@ -1,4 +1,5 @@
-"""Helpers the benchmarks share: CPU clocks, sums of per-chunk stats, medians."""
+"""Helpers the benchmarks share: CPU clocks and medians (per-share stats are summed by
+render/frame.py's sum_stats)."""
 
 from __future__ import annotations
 
@@ -11,15 +12,6 @@ def cpu_seconds() -> float:
     """CPU seconds of this process and its reaped children (the bake's worker pools)."""
     s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
-
-
-def sum_stats(dicts) -> dict:
-    """Stats dicts ({name: count or seconds}) summed key by key (a missing key counts 0)."""
-    out = {}
-    for d in dicts:
-        for k, v in d.items():
-            out[k] = out.get(k, 0) + v
-    return out
 
 
 def median(xs) -> float:

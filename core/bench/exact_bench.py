@@ -18,7 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..render.exact import SceneTracer, render_exact
+from ..render.exact import render_exact
+from ..scene.camera import Shot
+from ..trace.scene_tracer import SceneTracer
 from ..scene.samples import SAMPLES, build
 
 COLUMNS = (  # (key, header, format)
@@ -63,8 +65,8 @@ def bench_scene(name: str, size: int = 300, camera: str = "close", workers: int 
     t1 = time.perf_counter()
     st = SceneTracer(scene)
     t2 = time.perf_counter()
-    res = render_exact(scene, camera=camera, width=size, height=size, workers=workers,
-                       progress=progress, st=st)
+    res = render_exact(st, Shot(camera=camera, width=size, height=size), workers=workers,
+                       progress=progress)
     c, s = res.stats["counts"], res.stats["summary"]
     rays = max(int(c["object_candidates"]), 1)
     return {

@@ -31,7 +31,7 @@ faster.) Each interpolated configuration gets ``repeats`` passes (sweep points
 exact row is the median over all passes of the view, each interpolated
 row the median over its own, and of its own passes' exact halves (``exact_object_cpu_s``).
 Work counts and errors are deterministic (first pass). The tree is saved to a .rit file and
-loaded back (memory-mapped, packed samples) before rendering, as ``riray render --tree`` would
+loaded back (packed samples) before rendering, as ``riray render --tree`` would
 use it.
 
 **Sweeps** (on ``sweep_scenes``, ``sweep_view``): viewpoint x direction depth, bake tolerance
@@ -62,7 +62,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from ..parallel import workers_default
-from ..render.exact import SceneTracer
+from ..trace.scene_tracer import SceneTracer
 from ..ritree.query import QueryOptions
 from ..scene.samples import build
 from .exact_bench import machine

@@ -10,16 +10,17 @@ from pathlib import Path
 import numpy as np
 
 from ..parallel import map_chunks
-from ..scene.camera import camera_rays
-from ..render.exact import render_pixels, share_size
-from ..render.interpolated import disagreements, psnr, query_own_cpu
+from ..render.compare import compare_share
+from ..render.frame import (NOT_HANDED, ExactAnswerer, TreeAnswerer, join_shares,
+                            share_size)
+from ..render.interpolated import psnr, query_own_cpu
 from ..ritree import tree as ritree
+from ..ritree.answers import EXTRA_S, OUTSIDE, is_interpolated, is_traced
 from ..ritree.bake import bake
-from ..ritree.interp import angle_between
-from ..ritree.query import (DEFAULT_MAX_ERROR_DEG, EXTRA_S, EXTRAPOLATED_S, FULL, OUTSIDE,
-                            TRACED, TreeQuery)
+from ..ritree.query import DEFAULT_MAX_ERROR_DEG, TreeQuery
 from ..ritree.region import region_for_cameras
-from .common import cpu_seconds, median, sum_stats
+from ..scene.camera import camera_rays
+from .common import cpu_seconds, median
 
 SAMPLES_PER_LOOKUP = 16      # a query ray reads 4 viewpoints x 4 direction-cell corners
 SAMPLES_PER_EXTRA = 2        # ... and at least 2 extra samples when a leaf's extras answer it
@@ -27,7 +28,7 @@ TRACER_KEYS = ("pairs", "newton_iters", "fallback_pairs")
 
 
 def bake_view(st, scene, cam, size, params, workers, tree_dir) -> tuple:
-    """Bake the tree for camera ``cam`` at size x size, save it, load it back (memory-mapped).
+    """Bake the tree for camera ``cam`` at size x size, save it, load it back.
     Returns (tree, bake record)."""
     region = region_for_cameras(st, params, [cam], size, size)
     c0, t0 = cpu_seconds(), time.perf_counter()
@@ -46,82 +47,54 @@ def bake_view(st, scene, cam, size, params, workers, tree_dir) -> tuple:
     return ritree.load(path, scene), rec
 
 
-def _tracer_delta(st, before):
-    return {k: st.tracer.stats[k] - before[k] for k in TRACER_KEYS}
-
-
 def measure_pass(st, tree, cam, size, options, order=0) -> dict:
     """One interleaved pass in this process (see the module doc): every share through the tree
-    and exactly.
+    and exactly (render/compare.py).
     ``order`` 0: tree first, 1: exact first. Returns per-mode stats, answers, errors, images."""
-    query = TreeQuery(tree, st, options)
     o, d = camera_rays(cam, size, size)
+    tree_a, exact_a = TreeAnswerer(TreeQuery(tree, st, options)), ExactAnswerer(st)
 
     def work(a, b):
-        oo, dd = o[a:b], d[a:b]
-        box = {}
-
-        def tree_fn(oc, dc, tmax):
-            before = dict(st.tracer.stats)
-            res, ans, _, qs = query(oc, dc, tmax)
-            box.update(res=res, ans=ans)
-            return res, {**qs, **_tracer_delta(st, before)}
-
-        def exact_fn(oc, dc, tmax):
-            before = dict(st.tracer.stats)
-            res = st.object_function(oc, dc, tmax)
-            box["xres"] = res
-            return res, _tracer_delta(st, before)
-
-        runs = [("interp", tree_fn), ("exact", exact_fn)]
-        out = {}
-        for name, fn in (runs if order == 0 else runs[::-1]):
-            col, s, hit, cand = render_pixels(st, oo, dd, fn)
-            out[name] = (col, s, hit, cand)
-        cand = out["interp"][3]
-        objmask = np.zeros(b - a, bool)
-        objmask[out["exact"][2]] = True
-        ans = box["ans"]
-        ri, rx = box["res"], box["xres"]
-        interp = (ans >= FULL) & (ans <= EXTRAPOLATED_S) & ri.hit & rx.hit & ~rx.null
-        err = np.degrees(angle_between(ri.out_dir[interp], rx.out_dir[interp]))
-        answers = np.full(b - a, -1, np.int8)
-        answers[cand] = ans
-        # answered (not traced) beyond the default tolerance, or with a wrong kind of answer
-        # (hit / miss, null / not null)
-        off = (ans != TRACED) & (ans != OUTSIDE) & ((ri.hit != rx.hit) | (ri.null != rx.null))
-        off[np.flatnonzero(interp)[err > DEFAULT_MAX_ERROR_DEG]] = True
-        beyond = np.zeros(b - a, bool)
-        beyond[cand[off]] = True
-        return {"col_i": out["interp"][0], "col_x": out["exact"][0], "s_i": out["interp"][1],
-                "objmask": objmask, "beyond": beyond,
-                "s_x": out["exact"][1], "answers": answers, "err": err,
-                "disagree": disagreements(ri, rx)}
+        return compare_share(st, o[a:b], d[a:b], tree_a, exact_a, exact_first=bool(order))
 
     t0 = time.perf_counter()
     parts = map_chunks(work, len(o), share_size(len(o), 1), 1)
     wall = time.perf_counter() - t0
-    s_i, s_x = sum_stats(p["s_i"] for p in parts), sum_stats(p["s_x"] for p in parts)
-    answers = np.concatenate([p["answers"] for p in parts])
-    err = np.concatenate([p["err"] for p in parts])
-    img_i = np.concatenate([p["col_i"] for p in parts]).reshape(size, size, 3)
-    img_x = np.concatenate([p["col_x"] for p in parts]).reshape(size, size, 3)
-    cand = answers >= 0
-    objmask = np.concatenate([p["objmask"] for p in parts])
-    traced = (answers == TRACED) | (answers == OUTSIDE)
-    beyond = np.concatenate([p["beyond"] for p in parts])
+    fi = join_shares([p.tree for p in parts], wall)
+    fx = join_shares([p.exact for p in parts], wall)
+    s_i, s_x = fi.stats, fx.stats
+    answers = fi.answer
+    err = np.concatenate([p.err_deg for p in parts])
+    err = err[np.isfinite(err)]
+    cand = answers != NOT_HANDED
+    objmask = fx.object_mask
+    traced = is_traced(answers)
+    beyond = np.concatenate([_beyond(p) for p in parts])
     lookups = int(np.sum(cand & (answers != OUTSIDE)))
     extra = int(np.sum(answers == EXTRA_S))
-    n_interp = int(np.sum((answers >= FULL) & (answers <= EXTRAPOLATED_S)))
     return {"wall_s": wall, "s_i": s_i, "s_x": s_x, "answers": answers, "err": err,
-            "img_i": img_i, "img_x": img_x, "traced_mask": traced.reshape(size, size),
+            "img_i": fi.color.reshape(size, size, 3), "img_x": fx.color.reshape(size, size, 3),
+            "traced_mask": traced.reshape(size, size),
             "rays_traced": int(traced.sum()), "object_rays": int(cand.sum()),
             "traced_fraction": float(traced[objmask].mean()) if objmask.any() else 0.0,
             "beyond_fraction": float(beyond[objmask].mean()) if objmask.any() else 0.0,
-            "object_hits": int(s_x["object_hits"]), "interpolated": n_interp,
+            "object_hits": int(s_x["object_hits"]),
+            "interpolated": int(is_interpolated(answers).sum()),
             "samples_gathered": SAMPLES_PER_LOOKUP * lookups + SAMPLES_PER_EXTRA * extra,
-            "hit_disagree": sum(p["disagree"][0] for p in parts),
-            "null_disagree": sum(p["disagree"][1] for p in parts)}
+            "hit_disagree": sum(p.hit_disagree for p in parts),
+            "null_disagree": sum(p.null_disagree for p in parts)}
+
+
+def _beyond(p) -> np.ndarray:
+    """(n,) bool over a compared share's rays: answered (not traced) beyond the default
+    tolerance, or with a wrong kind of answer (hit / miss, null / not null)."""
+    ans, handed = p.tree.answer.answer, p.tree.handed
+    ri, rx = p.tree.answer.rays, p.exact.answer.rays
+    off = ~is_traced(ans) & ((ri.hit != rx.hit) | (ri.null != rx.null))
+    off |= p.interpolated & (p.err_deg[handed] > DEFAULT_MAX_ERROR_DEG)
+    beyond = np.zeros(len(p.tree.color), bool)
+    beyond[handed[off]] = True
+    return beyond
 
 
 def _errors(p) -> dict:

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from ..render.exact import SceneTracer
+from ..trace.scene_tracer import SceneTracer
 from ..ritree.query import QueryOptions
 from ..scene.samples import build
 from .ritree_config import BenchConfig, paper

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..ritree.answers import is_interpolated
 from ..ritree.interp import angle_between
-from ..ritree.query import EXTRAPOLATED_S, FULL
 from .frame import ShareResult, shade_share
 
 
@@ -27,11 +27,6 @@ class ComparedShare:
     interpolated: np.ndarray  # (handed,) bool: measured rays (answered by interpolation)
     hit_disagree: int        # handed rays answered hit / miss against the exact answer
     null_disagree: int       # handed rays answered null / not null against the exact answer
-
-
-def interpolated_output(answer: np.ndarray) -> np.ndarray:
-    """Rays whose output ray the tree interpolated (answer codes FULL .. EXTRAPOLATED_S)."""
-    return (answer >= FULL) & (answer <= EXTRAPOLATED_S)
 
 
 def disagreements(ri, rx) -> tuple[int, int]:
@@ -54,7 +49,7 @@ def compare_share(st, origins, dirs, tree_answerer, exact_answerer=None,
         return ComparedShare(tree, None, err, np.zeros(len(tree.handed), bool), 0, 0)
     exact = done[id(exact_answerer)]
     ri, rx = tree.answer.rays, exact.answer.rays
-    interp = interpolated_output(tree.answer.answer) & ri.hit & rx.hit & ~rx.null
+    interp = is_interpolated(tree.answer.answer) & ri.hit & rx.hit & ~rx.null
     err[tree.handed[interp]] = np.degrees(angle_between(ri.out_dir[interp], rx.out_dir[interp]))
     hit_d, null_d = disagreements(ri, rx)
     return ComparedShare(tree, exact, err, interp, hit_d, null_d)

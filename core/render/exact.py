@@ -1,6 +1,7 @@
 """The reference renderer: every camera ray that reaches the object is traced exactly.
 
-Per pixel (one ray per pixel, as in the paper): the environment is traced first so the object
+Per camera ray (one per pixel by default, as in the paper; ``Shot.samples`` per pixel, filtered
+on the film, for anti-aliasing): the environment is traced first so the object
 is only asked about rays whose box entry lies in front of the nearest environment hit; f gives
 the output ray(s) and first hit; the output rays are traced through the environment; local
 illumination of the first hit is blended with the colour they carry (paper 5.4).
@@ -14,18 +15,16 @@ more only where memory asks for it), so the tracer is called on whole-share batc
 from __future__ import annotations
 
 import json
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..atomic import atomic_write_text
-from ..scene.camera import camera_rays
-from ..scene.model import Scene
+from ..scene.camera import Shot, check_image_size
 from ..trace.scene_tracer import SceneTracer, check_camera_outside
-from .frame import ExactAnswerer, ObjectAnswer, peak_rss_mib, render_frame, shade_share
-from .frame import share_size  # noqa: F401  (transitional: the bench's import)
+from .film import Film
+from .frame import ExactAnswerer, peak_rss_mib, render_frame
 from .image import write_float_image, write_png
 
 
@@ -36,32 +35,31 @@ class RenderResult:
     masks: dict = field(default_factory=dict)   # name -> (H, W) bool or float images
 
 
-def render_exact(scene: Scene, camera=None, width=None, height=None, workers=None,
-                 progress=None, st: SceneTracer | None = None) -> RenderResult:
-    """Render ``camera`` (name or None for the first) exactly; sizes default to the scene's."""
-    w = int(scene.render.width if width is None else width)
-    h = int(scene.render.height if height is None else height)
-    cam = scene.camera(camera)
-    o, d = camera_rays(cam, w, h)
-    wall0 = time.perf_counter()
-    st = st or SceneTracer(scene)
-    build_s = time.perf_counter() - wall0
+def render_exact(st: SceneTracer, shot: Shot = Shot(), workers=None,
+                 progress=None) -> RenderResult:
+    """Render ``shot`` of the scene ``st`` traces (SceneTracer) exactly, ``shot.samples`` rays
+    per pixel. masks["object"]: with one sample, the pixels whose ray hit the object (bool);
+    with more, the fraction of each pixel's samples that did (float in [0, 1])."""
+    scene = st.scene
+    cam, w, h = shot.resolve(scene)
+    check_image_size(w, h)
     check_camera_outside(st, cam)
-
-    frame = render_frame(st, o, d, ExactAnswerer(st), workers, progress)
+    frame = render_frame(st, Film(cam, w, h, shot.samples), ExactAnswerer(st), workers,
+                         progress)
     stats = frame.stats
     summary = {
         "scene": scene.name, "camera": cam.name, "width": w, "height": h, "mode": "exact",
+        "samples": shot.samples,
         "rays_traced": stats["object_candidates"], "object_pixels": stats["object_hits"],
         "object_only_cpu_s": round(stats["object_cpu_s"], 4),
         "total_cpu_s": round(stats["total_cpu_s"], 4),
-        "wall_s": round(frame.wall_s, 4), "build_s": round(build_s, 4),
+        "wall_s": round(frame.wall_s, 4),
         "peak_rss_mib": round(peak_rss_mib(), 1), "shares": frame.shares,
         "object_rays_per_cpu_s": round(stats["object_candidates"] / max(stats["object_cpu_s"], 1e-9), 1),
     }
-    return RenderResult(image=frame.color.reshape(h, w, 3),
-                        stats={"summary": summary, "counts": stats},
-                        masks={"object": frame.object_mask.reshape(h, w)})
+    dev = frame.developed
+    return RenderResult(image=dev.images["color"], stats={"summary": summary, "counts": stats},
+                        masks={"object": dev.fraction("object")})
 
 
 def save_render(res: RenderResult, stem) -> list[Path]:
@@ -76,12 +74,3 @@ def save_render(res: RenderResult, stem) -> list[Path]:
     atomic_write_text(js, json.dumps(res.stats, indent=2, default=float) + "\n")
     return [png, npy, js]
 
-
-def render_pixels(st: SceneTracer, origins, dirs, object_fn):
-    """Transitional: the frame pipeline's shade_share over ``object_fn(o, d, tmax) ->
-    (ObjectRays, extra)``; returns (colours, stats, hit indices, handed indices)."""
-    def answerer(o, d, tmax):
-        rays, extra = object_fn(o, d, tmax)
-        return ObjectAnswer(rays=rays, stats=extra)
-    share = shade_share(st, origins, dirs, answerer)
-    return share.color, share.stats, share.hit, share.handed

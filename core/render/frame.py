@@ -5,7 +5,8 @@ A frame is cut into *shares* (``share_size``: one per worker, more only where me
 it); each stage runs once per share over whole arrays. What answers the object's rays is an
 *answerer*: a callable ``(origins, dirs, tmax) -> ObjectAnswer``, exact tracing
 (``ExactAnswerer``) or an RI-Tree query (``TreeAnswerer``). ``shade_share`` renders one share;
-``render_frame`` renders a frame's shares over worker processes and joins them. Every stage's
+``render_frame`` renders a frame's shares over worker processes and develops them on its film
+(render/film.py: samples per pixel, pixel filter). Every stage's
 CPU seconds (this process's CPU clock) land in the share's stats as ``stage_<name>_cpu_s``; the
 paper's *object-only* time is ``object_cpu_s`` (f plus the object's local illumination) and the
 *total* ``total_cpu_s``, with wall-clock twins ``*_wall_s``.
@@ -22,6 +23,7 @@ import numpy as np
 from ..parallel import map_chunks, workers_default
 from ..trace.objectfn import ObjectRays
 from ..trace.shading import local_illumination
+from .film import Developed, Film
 
 # Most camera rays per share: bounds a share's working memory (about 1 GiB for the exact
 # tracer's and the RI-Tree query's arrays) while keeping tracer calls large.
@@ -38,6 +40,12 @@ class ObjectAnswer:
     stats: dict = field(default_factory=dict)   # counts and CPU seconds of the answerer
 
 
+def tracer_work(st, before: dict) -> dict:
+    """The exact tracer's work counters (pairs, Newton iterations, fallback pairs) since
+    ``before`` (a copy of ``st.tracer.stats``)."""
+    return {k: st.tracer.stats[k] - before[k] for k in before}
+
+
 class ExactAnswerer:
     """Every ray traced exactly; the stats hold the tracer's work counters for these rays."""
 
@@ -47,20 +55,22 @@ class ExactAnswerer:
     def __call__(self, origins, dirs, tmax) -> ObjectAnswer:
         before = dict(self.st.tracer.stats)
         rays = self.st.object_function(origins, dirs, tmax)
-        work = {k: self.st.tracer.stats[k] - before[k] for k in before}
-        return ObjectAnswer(rays=rays, stats=work)
+        return ObjectAnswer(rays=rays, stats=tracer_work(self.st, before))
 
 
 class TreeAnswerer:
     """Rays answered by an RI-Tree query (``ritree.query.TreeQuery``), which traces what the
-    tree cannot answer."""
+    tree cannot answer; the stats hold the query's counts and stage seconds and the tracer's
+    work counters for the rays it traced."""
 
     def __init__(self, query):
         self.query = query
 
     def __call__(self, origins, dirs, tmax) -> ObjectAnswer:
+        before = dict(self.query.st.tracer.stats)
         rays, answer, why, stats = self.query(origins, dirs, tmax)
-        return ObjectAnswer(rays=rays, answer=answer, why=why, stats=stats)
+        return ObjectAnswer(rays=rays, answer=answer, why=why,
+                            stats={**stats, **tracer_work(self.query.st, before)})
 
 
 @dataclass
@@ -113,7 +123,8 @@ def shade_share(st, origins, dirs, answerer) -> ShareResult:
     clock = _Clock(stats)
     n = len(origins)
     col = np.zeros((n, 3))
-    env_t = st.env.hit_distance(origins, dirs)
+    env_hits = st.env.closest(origins, dirs)       # found once: reused by the rays that miss
+    env_t = env_hits.t                              # the object
     clock.lap("environment_hit")
     handed = np.flatnonzero(st.box_entry(origins, dirs) < env_t)
     c1 = clock.lap("box_entry")
@@ -130,7 +141,8 @@ def shade_share(st, origins, dirs, answerer) -> ShareResult:
     clock.lap("carried")
     rest = np.ones(n, bool)
     rest[hit] = False
-    col[rest] = st.env.shade_rays(origins[rest], dirs[rest])
+    rest = np.flatnonzero(rest)
+    col[rest] = st.env.shade_rays(origins[rest], dirs[rest], hits=env_hits.take(rest))
     clock.lap("environment_shade")
     stats.update({"camera_rays": n, "object_candidates": len(handed), "object_hits": len(hit),
                   "events": int(obj.events.sum()), "object_cpu_s": c_obj, "object_wall_s": t_obj,
@@ -195,16 +207,30 @@ def join_shares(parts: list[ShareResult], wall_s: float) -> FrameResult:
                        wall_s=wall_s)
 
 
-def render_frame(st, origins, dirs, answerer, workers=None, progress=None,
-                 per_worker: int = 1) -> FrameResult:
-    """Render camera rays in shares over ``workers`` processes (forked: they inherit ``st`` and
-    ``answerer``); ``progress(fraction)`` is called as shares finish and may raise to stop."""
+@dataclass
+class FilmedFrame:
+    """A frame's camera rays rendered and developed on its film (render/film.py)."""
+    developed: Developed       # image "color"; box "object" (rays that hit the object)
+    stats: dict                # summed over shares
+    shares: int
+    wall_s: float              # wall seconds of the shares' rendering
+
+
+def render_frame(st, film: Film, answerer, workers=None, progress=None,
+                 per_worker: int = 1) -> FilmedFrame:
+    """Render ``film``'s camera rays in shares over ``workers`` processes (forked: they
+    inherit ``st`` and ``answerer``; each makes its share's rays and develops their colours);
+    ``progress(fraction)`` is called as shares finish and may raise to stop."""
     workers = workers_default() if workers is None else workers
 
     def work(a, b):
-        return shade_share(st, origins[a:b], dirs[a:b], answerer)
+        share = shade_share(st, *film.rays(a, b), answerer)
+        hit = np.zeros(b - a)
+        hit[share.hit] = 1.0
+        return film.develop(a, b, {"color": share.color}, {"object": hit}), share.stats
 
     t0 = time.perf_counter()
-    parts = map_chunks(work, len(origins), share_size(len(origins), workers, per_worker),
+    parts = map_chunks(work, film.n_rays, share_size(film.n_rays, workers, per_worker),
                        workers, progress)
-    return join_shares(parts, time.perf_counter() - t0)
+    return FilmedFrame(film.join(p[0] for p in parts), sum_stats(p[1] for p in parts),
+                       len(parts), time.perf_counter() - t0)

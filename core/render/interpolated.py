@@ -1,6 +1,7 @@
 """Rendering through the RI-Tree, measured against the exact renderer in the same run.
 
-The frame is cut into shares (one per worker process; exact.share_size). Each share is rendered
+The frame's camera rays (``Shot.samples`` per pixel, developed on the film: render/film.py) are
+cut into shares (one per worker process; frame.share_size). Each share is rendered
 twice in the same process, interleaved: once with the exact object function, once with the tree
 (``ritree.query.TreeQuery``, one staged call over the whole share), the order alternating from
 share to share, so the *object-only* times compare the same rays under the same machine load
@@ -17,94 +18,130 @@ seconds (``*_wall_s``). Outputs:
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..parallel import map_chunks, workers_default
-from ..ritree.query import ANSWER_NAMES, OUTSIDE, TRACED, TRACING_STAGES, WHY_NAMES, TreeQuery
-from ..scene.camera import camera_rays
+from ..ritree.answers import ANSWER_NAMES, WHY_NAMES, is_traced
+from ..ritree.query import TRACING_STAGES, TreeQuery
+from ..scene.camera import Shot, check_image_size
 from ..trace.scene_tracer import SceneTracer
-from .compare import compare_share, disagreements  # noqa: F401  (disagreements: re-exported)
+from .compare import compare_share
 from .exact import RenderResult
-from .frame import (ExactAnswerer, FrameResult, TreeAnswerer, join_shares, peak_rss_mib,
-                    share_size)
+from .film import Film, FilmPart
+from .frame import ExactAnswerer, TreeAnswerer, peak_rss_mib, share_size, sum_stats
 
 ERROR_GREY_MAX_DEG = 2.0     # Figure 14: greyscale up to 2 degrees, green beyond
 
 
-def render_tree(scene, tree, camera=None, width=None, height=None, options=None,
-                reference=True, workers=None, progress=None, st: SceneTracer | None = None):
-    """Render ``camera`` through ``tree``; with ``reference`` also exactly (same rays, same
-    process, interleaved) for the error statistics and images. Returns a RenderResult whose
-    ``masks`` hold "traced", "object", "angle_error_deg" and, with reference, "exact"."""
-    w = int(scene.render.width if width is None else width)
-    h = int(scene.render.height if height is None else height)
-    cam = scene.camera(camera)
-    o, d = camera_rays(cam, w, h)
-    st = st or SceneTracer(scene)
+def render_tree(st: SceneTracer, tree, shot: Shot = Shot(), options=None, reference=True,
+                workers=None, progress=None) -> RenderResult:
+    """Render ``shot`` of the scene ``st`` traces through ``tree`` (with the render-time rules
+    ``options``), ``shot.samples`` rays per pixel, the tree answering every one; with
+    ``reference`` also exactly (same rays, same process, interleaved) for the error statistics
+    and images. Returns a RenderResult whose ``masks`` hold "traced", "object" (with one sample
+    bool images; with more the fraction of each pixel's samples traced / hitting the object),
+    "angle_error_deg" (per pixel, the mean over its measured samples; NaN where none) and, with
+    reference, "exact" (the exact image). Stats count camera rays (samples)."""
+    scene = st.scene
+    cam, w, h = shot.resolve(scene)
+    check_image_size(w, h)
+    film = Film(cam, w, h, shot.samples)
     query = TreeQuery(tree, st, options)
     tree_answerer = TreeAnswerer(query)
     exact_answerer = ExactAnswerer(st) if reference else None
     workers = workers_default() if workers is None else workers
-    size = share_size(len(o), workers)
+    size = share_size(film.n_rays, workers)
 
     def work(a, b):
-        return compare_share(st, o[a:b], d[a:b], tree_answerer, exact_answerer,
-                             exact_first=bool((a // size) % 2))
+        cs = compare_share(st, *film.rays(a, b), tree_answerer, exact_answerer,
+                           exact_first=bool((a // size) % 2))
+        return _develop(film, a, b, cs)
 
     t0 = time.perf_counter()
-    parts = map_chunks(work, len(o), size, workers, progress)
-    frame = join_shares([p.tree for p in parts], time.perf_counter() - t0)
-    err = np.concatenate([p.err_deg for p in parts])
-    stats = _answer_stats(frame)
+    parts = map_chunks(work, film.n_rays, size, workers, progress)
+    wall = time.perf_counter() - t0
+    dev = film.join(p.film for p in parts)
+    counts = sum_stats(p.counts for p in parts)
+    si = sum_stats(p.tree_stats for p in parts)
+    stats = _answer_stats(counts, si)
     summary = {"scene": scene.name, "camera": cam.name, "width": w, "height": h,
-               "mode": "interpolated", "policy": query.opt.policy, **_tree_summary(frame)}
-    masks = {"traced": traced_mask(frame.answer).reshape(h, w),
-             "object": frame.object_mask.reshape(h, w), "angle_error_deg": err.reshape(h, w)}
+               "samples": shot.samples, "mode": "interpolated", "policy": query.opt.policy,
+               **_tree_summary(counts, si, len(parts), wall)}
+    masks = {"traced": dev.fraction("traced"), "object": dev.fraction("object"),
+             "angle_error_deg": dev.mean("err", "measured")}
+    image = dev.images["color"]
     if reference:
-        exact = join_shares([p.exact for p in parts], frame.wall_s)
-        summary.update(_reference_summary(frame, exact, parts, err))
-        stats["exact_counts"] = exact.stats
-        masks["exact"] = exact.color.reshape(h, w, 3)
+        masks["exact"] = dev.images["exact"]
+        sx = sum_stats(p.exact_stats for p in parts)
+        summary.update(_reference_summary(si, sx, image, masks["exact"], parts))
+        stats["exact_counts"] = sx
     stats["summary"] = summary
-    return RenderResult(image=frame.color.reshape(h, w, 3), stats=stats, masks=masks)
+    return RenderResult(image=image, stats=stats, masks=masks)
 
 
-def traced_mask(answer: np.ndarray) -> np.ndarray:
-    """Rays traced exactly by the tree query (inside the tree or outside it)."""
-    return (answer == TRACED) | (answer == OUTSIDE)
+@dataclass
+class _TreePart:
+    """One share through the tree (and exactly), developed: the film's part, summed stats,
+    answer counts, and the measured angle errors (degrees) in ray order."""
+    film: FilmPart
+    tree_stats: dict
+    exact_stats: dict
+    counts: dict
+    err: np.ndarray
+    hit_disagree: int
+    null_disagree: int
 
 
-def _answer_stats(frame: FrameResult) -> dict:
+def _develop(film: Film, a: int, b: int, cs) -> _TreePart:
+    """A compared share's colours and masks onto the film; its counts for the stats."""
+    tree, n = cs.tree, b - a
+    hit = np.zeros(n)
+    hit[tree.hit] = 1.0
+    traced = np.zeros(n)
+    traced[tree.handed] = is_traced(tree.answer.answer)
+    measured = np.isfinite(cs.err_deg)
+    filtered = {"color": tree.color}
+    if cs.exact is not None:
+        filtered["exact"] = cs.exact.color
+    box = {"object": hit, "traced": traced, "measured": measured,
+           "err": np.where(measured, cs.err_deg, 0.0)}
+    counts = {"answer": np.bincount(tree.answer.answer, minlength=len(ANSWER_NAMES)),
+              "why": np.bincount(tree.answer.why, minlength=len(WHY_NAMES)),
+              "traced": int(traced.sum()), "traced_hit": int(traced[tree.hit].sum()),
+              "hit": len(tree.hit)}
+    return _TreePart(film.develop(a, b, filtered, box), tree.stats,
+                     cs.exact.stats if cs.exact is not None else {}, counts,
+                     cs.err_deg[measured], cs.hit_disagree, cs.null_disagree)
+
+
+def _answer_stats(counts: dict, si: dict) -> dict:
     """How every ray was answered and why rays were traced; the query's summed counts."""
-    a, why = frame.answer, frame.why
-    return {"answers": {ANSWER_NAMES[k]: int(np.sum(a == k)) for k in range(len(ANSWER_NAMES))},
-            "traced_because": {WHY_NAMES[k]: int(np.sum(why == k))
-                               for k in range(1, len(WHY_NAMES))},
-            "interp_counts": frame.stats}
+    a, why = counts["answer"], counts["why"]
+    return {"answers": {ANSWER_NAMES[k]: int(a[k]) for k in range(len(ANSWER_NAMES))},
+            "traced_because": {WHY_NAMES[k]: int(why[k]) for k in range(1, len(WHY_NAMES))},
+            "interp_counts": si}
 
 
-def _tree_summary(frame: FrameResult) -> dict:
-    """The tree render's share of the summary: pixels, traced rays, times, memory."""
-    si, obj = frame.stats, frame.object_mask
-    traced = traced_mask(frame.answer)
-    n_obj = int(obj.sum())
-    return {"object_pixels": n_obj, "rays_traced": int(traced.sum()),
-            "traced_fraction_of_object": round(float(traced[obj].mean()) if n_obj else 0.0, 5),
+def _tree_summary(counts: dict, si: dict, shares: int, wall_s: float) -> dict:
+    """The tree render's share of the summary: object rays, traced rays, times, memory."""
+    n_obj = counts["hit"]
+    return {"object_pixels": n_obj, "rays_traced": counts["traced"],
+            "traced_fraction_of_object": round(counts["traced_hit"] / n_obj if n_obj else 0.0, 5),
             "interp_object_only_cpu_s": round(si["object_cpu_s"], 4),
             "interp_total_cpu_s": round(si["total_cpu_s"], 4),
             "interp_object_only_wall_s": round(si["object_wall_s"], 4),
             "interp_total_wall_s": round(si["total_wall_s"], 4),
             "query_own_cpu_s": round(query_own_cpu(si), 4),
-            "shares": frame.shares, "wall_s": round(frame.wall_s, 4),
+            "shares": shares, "wall_s": round(wall_s, 4),
             "peak_rss_mib": round(peak_rss_mib(), 1)}
 
 
-def _reference_summary(frame: FrameResult, exact: FrameResult, parts, err) -> dict:
-    """Against the exact frame: times and speed-ups, angular error, disagreements, PSNR."""
-    si, sx = frame.stats, exact.stats
-    e = err[np.isfinite(err)]
-    img, ref = frame.color, exact.color
+def _reference_summary(si: dict, sx: dict, img, ref, parts) -> dict:
+    """Against the exact frame (stats ``sx``, image ``ref``): times and speed-ups, angular
+    error, disagreements, PSNR."""
+    e = np.concatenate([p.err for p in parts])
     return {
         "exact_object_only_cpu_s": round(sx["object_cpu_s"], 4),
         "exact_total_cpu_s": round(sx["total_cpu_s"], 4),
@@ -155,8 +192,9 @@ def error_image(err_deg: np.ndarray, traced: np.ndarray, objmask: np.ndarray) ->
 
 
 def save_tree_render(res: RenderResult, folder) -> list:
-    """Write interpolated.png/.npy, traced.png (white = traced), angle_error.png (with a
-    reference), exact.png/.npy (with a reference) and stats.json into ``folder``."""
+    """Write interpolated.png/.npy, traced.png (white = traced; grey = that fraction of a
+    pixel's samples), angle_error.png (with a reference; red where most samples were traced),
+    exact.png/.npy (with a reference) and stats.json into ``folder``."""
     import json
     from pathlib import Path
 
@@ -173,12 +211,13 @@ def save_tree_render(res: RenderResult, folder) -> list:
 
     put("interpolated.png", write_png, res.image)
     put("interpolated.npy", write_float_image, res.image)
-    put("traced.png", write_png_u8, np.where(res.masks["traced"], 255, 0).astype(np.uint8))
+    traced, objmask = res.masks["traced"], res.masks["object"]
+    put("traced.png", write_png_u8, np.round(np.asarray(traced, float) * 255).astype(np.uint8))
     if "exact" in res.masks:
         put("exact.png", write_png, res.masks["exact"])
         put("exact.npy", write_float_image, res.masks["exact"])
         put("angle_error.png", write_png_u8, error_image(res.masks["angle_error_deg"],
-                                                           res.masks["traced"], res.masks["object"]))
+                                                           traced >= 0.5, objmask > 0))
     p = folder / "stats.json"
     atomic_write_text(p, json.dumps(res.stats, indent=2, default=float) + "\n")
     out.append(p)

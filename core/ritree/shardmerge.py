@@ -1,6 +1,6 @@
-"""Merging the shards of a cluster bake (``bake._Baker._merge``): placing each shard's blocks
-in the order one local pass makes, renumbering ids on the way, into output arrays that the
-client first touched while it waited for the shards.
+"""Merging the shards of a cluster bake (``bake.shards.ShardedPass.merge``): placing each
+shard's blocks in the order one local pass makes, renumbering ids on the way, into output
+arrays that the client first touched while it waited for the shards.
 
 Writing fresh memory is most of a large merge's cost: on the VMs measured, the merge of a 5/6
 full tree (1.3 GB) took 4.3-4.8 s, about nine tenths of it the host's first touch of the new

@@ -17,7 +17,7 @@ from ..scene.camera import pixel_rays, project_points
 from .dircube import UV_AXES
 from .interp import angle_between
 from .locate import entry_points
-from .tree import BOUNDARY, PATH_CHANGE
+from .params import BOUNDARY, PATH_CHANGE
 
 # Test points of a viewpoint cell, cell-local (x, y): the centre and the four edge midpoints.
 TEST_POINTS = np.array([[0.5, 0.5], [0.5, 0.0], [0.0, 0.5], [1.0, 0.5], [0.5, 1.0]])

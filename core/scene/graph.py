@@ -28,7 +28,7 @@ FLOAT, VECTOR, COLOR, SHADER = "float", "vector", "color", "shader"
 # Rec. 709 luminance (Blender's default scene-linear space): colour -> float conversion.
 LUMA = (0.2126729, 0.7151522, 0.0721750)
 MAX_STOPS = 32          # Blender's colour ramps hold at most 32 stops
-MAX_NUMBER = 1e12       # every number, as in the rest of the scene format (io.MAX_NUMBER)
+MAX_NUMBER = 1e12       # every number, as in the rest of the scene format (validate.MAX_NUMBER)
 MAX_NODES = 4096        # a graph bigger than this is a mistake, not an environment
 IDENTITY4 = tuple(tuple(float(i == j) for j in range(4)) for i in range(4))
 IDENTITY3 = tuple(tuple(float(i == j) for j in range(3)) for i in range(3))

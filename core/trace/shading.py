@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..scene.model import Light, ObjectMaterial, Scene
-from .meshes import MeshSet
+from .meshes import MeshSet, RayHits
 from .nodes import ShadingPoints, evaluate
 from .textures import eval_texture, eval_world
 
@@ -69,12 +69,18 @@ class Environment:
         self.offset = SHADOW_OFFSET * max(diag, 1.0)
         self.stats = {"env_rays": 0, "shadow_rays": 0}
 
+    def closest(self, origins, dirs, tmin=None, tmax=None) -> RayHits:
+        """The closest environment hit of each ray in [tmin, tmax] (defaults 0, inf), a hit
+        record ``shade_rays`` can take; not counted."""
+        return self.meshes.closest(origins, dirs, tmin, tmax)
+
     def hit_distance(self, origins, dirs, tmin=None, tmax=None) -> np.ndarray:
         """(N,) distance to the closest environment mesh (inf on a miss); not counted."""
-        return self.meshes.closest_t(origins, dirs, tmin, tmax)[0]
+        return self.closest(origins, dirs, tmin, tmax).t
 
-    def shade_rays(self, origins, dirs, tmin=None) -> np.ndarray:
-        """(N, 3) radiance seen along rays (unit dirs) from t >= tmin (default 0)."""
+    def shade_rays(self, origins, dirs, tmin=None, hits: RayHits | None = None) -> np.ndarray:
+        """(N, 3) radiance seen along rays (unit dirs) from t >= tmin (default 0). ``hits``:
+        the rays' closest hits (``closest`` with the same tmin), found here when None."""
         origins = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
         dirs = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
         n = len(origins)
@@ -82,49 +88,61 @@ class Environment:
         out = np.zeros((n, 3))
         for c0 in range(0, n, SHADE_CHUNK):
             sl = slice(c0, min(n, c0 + SHADE_CHUNK))
-            out[sl] = self._shade_chunk(origins[sl], dirs[sl], tmin[sl])
+            h = (self.meshes.closest(origins[sl], dirs[sl], tmin[sl]) if hits is None
+                 else hits.take(sl))
+            out[sl] = self._shade_chunk(dirs[sl], h)
         self.stats["env_rays"] += n
         return np.clip(out, -MAX_RADIANCE, MAX_RADIANCE)
 
-    def _shade_chunk(self, origins, dirs, tmin):
-        hit = self.meshes.closest_hit(origins, dirs, tmin)
-        out = np.zeros((len(origins), 3))
+    def _shade_chunk(self, dirs, hits: RayHits):
+        """Radiance along rays ``dirs`` with closest hits ``hits``: the world where they miss;
+        emission + albedo / pi * (ambient + irradiance) where they hit, the irradiance (and
+        its shadow rays) found once for every point with an albedo, whatever its material."""
+        hit = self.meshes.record(hits)
+        n = len(dirs)
+        out = np.zeros((n, 3))
         miss = ~hit.hit
         if miss.any():
             out[miss] = eval_world(self.world, dirs[miss])
-        for k in np.unique(hit.mesh[hit.hit]):
-            sel = np.flatnonzero(hit.mesh == k)
-            mat = self.materials[k]
-            # normals turned towards the incoming ray (the geometric side decides)
-            back = np.einsum("ij,ij->i", hit.geo_normal[sel], dirs[sel]) > 0
-            flip = np.where(back, -1.0, 1.0)[:, None]
-            normal, geo = hit.normal[sel] * flip, hit.geo_normal[sel] * flip
+        idx = np.flatnonzero(hit.hit)
+        if len(idx) == 0:
+            return out
+        # normals turned towards the incoming ray (the geometric side decides)
+        d = dirs[idx]
+        back = np.einsum("ij,ij->i", hit.geo_normal[idx], d) > 0
+        flip = np.where(back, -1.0, 1.0)[:, None]
+        normal, geo, point = hit.normal[idx] * flip, hit.geo_normal[idx] * flip, hit.point[idx]
+        emission = np.zeros((len(idx), 3))
+        albedo = np.zeros((len(idx), 3))
+        lit = np.zeros(len(idx), bool)
+        mesh = hit.mesh[idx]
+        order = np.argsort(mesh, kind="stable")
+        starts = np.flatnonzero(np.r_[True, mesh[order][1:] != mesh[order][:-1]])
+        for sel in np.split(order, starts[1:]):        # one group per mesh, rays in order
+            mat = self.materials[int(mesh[sel[0]])]
             if mat.kind == "nodes":
                 cl = evaluate(mat.graph, ShadingPoints(
-                    position=hit.point[sel], normal=normal, true_normal=geo,
-                    incoming=-dirs[sel], uv=hit.uv[sel], backfacing=back))
-                lit = np.any(cl.albedo != 0, axis=1)
-                if lit.all():
-                    irr = self.irradiance(hit.point[sel], normal, geo, self.occluder)
-                    out[sel] = cl.emission + cl.albedo * (self.world.ambient + irr) / np.pi
-                    continue
-                out[sel] = cl.emission
-                if lit.any():       # only points with an albedo cast shadow rays
-                    lit = np.flatnonzero(lit)
-                    irr = self.irradiance(hit.point[sel[lit]], normal[lit], geo[lit],
-                                          self.occluder)
-                    out[sel[lit]] += cl.albedo[lit] * (self.world.ambient + irr) / np.pi
+                    position=point[sel], normal=normal[sel], true_normal=geo[sel],
+                    incoming=-d[sel], uv=hit.uv[idx[sel]], backfacing=back[sel]))
+                emission[sel], albedo[sel] = cl.emission, cl.albedo
+                lit[sel] = np.any(cl.albedo != 0, axis=1)   # only these cast shadow rays
                 continue
             tex = mat.color
-            if tex.kind == "constant":
-                albedo = np.broadcast_to(np.asarray(tex.color, dtype=np.float64), (len(sel), 3))
-            else:
-                albedo = eval_texture(tex, hit.point[sel], hit.uv[sel])
             if mat.kind == "emission":
-                out[sel] = albedo * mat.strength
+                if tex.kind == "constant":
+                    emission[sel] = np.asarray(tex.color, dtype=np.float64) * mat.strength
+                else:
+                    emission[sel] = eval_texture(tex, point[sel], hit.uv[idx[sel]]) * mat.strength
                 continue
-            irr = self.irradiance(hit.point[sel], normal, geo, self.occluder)
-            out[sel] = albedo * (self.world.ambient + irr) / np.pi
+            albedo[sel] = (tex.color if tex.kind == "constant"
+                           else eval_texture(tex, point[sel], hit.uv[idx[sel]]))
+            lit[sel] = True
+        on = np.flatnonzero(lit)
+        off = np.flatnonzero(~lit)
+        out[idx[off]] = emission[off]
+        if len(on):
+            irr = self.irradiance(point[on], normal[on], geo[on], self.occluder)
+            out[idx[on]] = emission[on] + albedo[on] * (self.world.ambient + irr) / np.pi
         return out
 
     def irradiance(self, points, normals, offset_normals, occluder=None) -> np.ndarray:

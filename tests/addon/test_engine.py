@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from riray.render.exact import render_exact
+from riray.trace.scene_tracer import SceneTracer
 
 W, H = 48, 36          # small frames keep the test quick
 
@@ -86,7 +87,7 @@ def core_reference(bl, obj):
     bpy = bl.bpy
     s = bl.export.export_scene(bpy.context.evaluated_depsgraph_get(), obj, bl.report.Report(),
                                cameras="ACTIVE")
-    return render_exact(s, workers=1).image
+    return render_exact(SceneTracer(s), workers=1).image
 
 
 def test_still_matches_core(bl, tmp_path):
@@ -108,7 +109,7 @@ def test_still_matches_core(bl, tmp_path):
     path = tmp_path / "scene" / "exported.json"
     assert bpy.ops.riray.export_scene(filepath=str(path), object=obj.name) == {"FINISHED"}
     from riray.scene.io import load_scene
-    again = render_exact(load_scene(path), workers=1).image
+    again = render_exact(SceneTracer(load_scene(path)), workers=1).image
     assert np.abs(again - ref).max() < 1e-12
 
 
@@ -226,7 +227,7 @@ def test_still_through_baked_tree_matches_core(bl, tmp_path):
     s = bl.export.export_scene(bpy.context.evaluated_depsgraph_get(), obj, bl.report.Report(),
                                cameras="ACTIVE")
     opts = QueryOptions(**bl.properties.query_options(obj))
-    ref = render_tree(s, ritree.load(path), options=opts, reference=False, workers=1)
+    ref = render_tree(SceneTracer(s), ritree.load(path), options=opts, reference=False, workers=1)
     assert st["mode"] != "exact" and st["object_pixels"] > 50
     assert 0.0 < st["traced_fraction"] < 0.9
     assert np.abs(got - ref.image).max() < 1e-5
@@ -375,3 +376,26 @@ def test_depth_of_field_is_reported(bl, tmp_path):
     bl.engine.RirayRenderEngine._export(engine, bpy.context.evaluated_depsgraph_get())
     assert ({"WARNING"}, "camera Camera: depth of field is not rendered (everything is in "
                          "focus)") in reports
+
+
+def test_samples_per_pixel_match_core(bl, tmp_path):
+    """scene.riray.samples = 4: the engine's frame is core's 4-sample exact render of the
+    exported scene (the same stratified rays, the same filter), the Traced pass holds the
+    fraction of each pixel's samples traced, and the counts are rays."""
+    from riray.scene.camera import Shot
+    bpy = bl.bpy
+    obj = build_scene(bl, tmp_path)
+    bpy.context.scene.riray.samples = 4
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    got = load_exr(bpy, tmp_path / "still.exr")
+    s = bl.export.export_scene(bpy.context.evaluated_depsgraph_get(), obj, bl.report.Report(),
+                               cameras="ACTIVE")
+    ref = render_exact(SceneTracer(s), Shot(samples=4), workers=1)
+    assert np.abs(got - ref.image).max() < 1e-5
+    assert np.abs(got - core_reference(bl, obj)).max() > 0.05      # not one ray per pixel
+    last = bl.engine.LAST_RENDER
+    st = last["stats"]
+    assert st["samples"] == 4 and st["mode"] == "exact" and st["traced_fraction"] == 1.0
+    assert np.isclose(last["traced"].sum() * 4, st["object_pixels"])
+    assert np.allclose(last["traced"], ref.masks["object"])
+    assert 0 < np.sum((last["traced"] > 0) & (last["traced"] < 1))      # partly covered pixels

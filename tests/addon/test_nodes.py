@@ -19,6 +19,8 @@ import numpy as np
 import pytest
 
 from riray.render.exact import render_exact
+from riray.scene.camera import Shot
+from riray.trace.scene_tracer import SceneTracer
 
 W, H = 32, 24
 AGREE = 1e-3        # per pixel: |Cycles - riray| <= AGREE * max(1, |riray|) (Cycles is float32)
@@ -213,7 +215,7 @@ def edges_and_slack(scene, base, offset_px):
         for sign in (1, -1):
             scene.cameras[0] = dataclasses.replace(cam, shift_x=cam.shift_x + sign * dx,
                                                    shift_y=cam.shift_y + sign * dy)
-            pair.append(render_exact(scene, width=W, height=H, workers=1).image)
+            pair.append(render_exact(SceneTracer(scene), Shot(width=W, height=H), workers=1).image)
         edge |= (np.abs(pair[0] + pair[1] - 2 * base) / scale).max(axis=2) > AGREE / 2
         slope = np.maximum(np.abs(pair[0] - base), np.abs(pair[1] - base)) / PROBE_PX / scale
         slack += slope.max(axis=2) * offset_px
@@ -257,7 +259,7 @@ def compare(bl, tmp_path, offset_px, room=None, world=None, min_std=0.02):
     rep = bl.report.Report()
     scene = bl.export.export_scene(bpy.context.evaluated_depsgraph_get(), mirror, rep,
                                    cameras="ACTIVE")
-    base = render_exact(scene, width=W, height=H, workers=1).image
+    base = render_exact(SceneTracer(scene), Shot(width=W, height=H), workers=1).image
     # the engine renders the exported scene (EXR float32)
     assert (np.abs(base - got) / np.maximum(1.0, np.abs(base))).max() < 1e-6
     edge, slack = edges_and_slack(scene, base, offset_px)
@@ -779,7 +781,7 @@ def test_unsupported_nodes_give_the_socket_value_and_one_warning(bl, tmp_path):
     scene, warn = _export(bl, mirror)
     assert warn.count("'Wave Texture'") == 1 and warn.count("'Light Path'") == 1
     assert "material 'room'" in warn and "(TEX_WAVE) is not supported" in warn
-    img = render_exact(scene, width=W, height=H, workers=1).image
+    img = render_exact(SceneTracer(scene), Shot(width=W, height=H), workers=1).image
     assert np.allclose(img[~np.isclose(img, 0).all(axis=2)], [0.75, 0.2, 0.1], atol=1e-6)
     math = next(n for n in _graph_of(scene).nodes if n.type == "math")
     assert "a" not in math.links and math.inputs["a"] == 0.5
@@ -820,6 +822,6 @@ def test_graph_scene_survives_the_json_file(bl, tmp_path):
     assert bl.bpy.ops.riray.export_scene(filepath=str(path), object=mirror.name) == {"FINISHED"}
     again = load_scene(path)
     assert again.world.kind == "nodes" and {m.kind for m in again.materials.values()} == {"nodes"}
-    a = render_exact(scene, width=W, height=H, workers=1).image
-    b = render_exact(again, width=W, height=H, workers=1).image
+    a = render_exact(SceneTracer(scene), Shot(width=W, height=H), workers=1).image
+    b = render_exact(SceneTracer(again), Shot(width=W, height=H), workers=1).image
     assert a.std() > 0.05 and np.abs(a - b).max() < 1e-12

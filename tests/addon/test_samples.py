@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 
 from riray.render.exact import render_exact
+from riray.scene.camera import Shot
+from riray.trace.scene_tracer import SceneTracer
 from riray.scene import samples
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -146,7 +148,7 @@ def test_engine_render_matches_core_sample(blender, build_blend, tmp_path):
     scene.render.filepath = str(tmp_path / "sphere.exr")
     assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
     got = blender.engine.LAST_RENDER["image"]
-    want = render_exact(ref, camera=scene.camera.name, width=30, height=30, workers=1).image
+    want = render_exact(SceneTracer(ref), Shot(camera=scene.camera.name, width=30, height=30), workers=1).image
     err = np.abs(got - want)
     # float32 scene data in Blender: identical but for a few pixels on edges / silhouettes
     assert np.mean(err > 1e-3) < 0.02 and np.median(err) < 1e-5

@@ -2,6 +2,7 @@
 into): every property it shows exists, the states (not baked / up to date / stale / baking)
 draw, and the status bar shows a running bake with its progress and cancel button."""
 
+import math
 import time
 
 import pytest
@@ -48,12 +49,10 @@ def test_bake_panel_states(bl, tmp_path):
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "ui.blend"))
     log = []
     ui.draw_bake_panel(Layout(log), bpy.context)
-    props = {x[1] for x in log if x[0] == "prop"}
-    assert {"viewpoint_depth", "direction_depth", "tolerance_deg", "angle_deg", "max_error_deg",
-            "use_max_error", "use_path_identity", "use_mirror_normal", "use_mirror_newton",
-            "bake_for_cameras", "use_frame_range", "cache_file"} <= props
-    ops = {x[1] for x in log if x[0] == "operator"}
-    assert {"riray.bake", "riray.bake_clear", "riray.bake_estimate"} <= ops
+    props = [x[1] for x in log if x[0] == "prop"]
+    assert props == ["quality", "bake_for_cameras", "use_frame_range", "cache_file"]
+    ops = [x[1] for x in log if x[0] == "operator"]
+    assert ops == ["riray.bake", "riray.bake_clear", "riray.bake_estimate"]
     assert "Not baked" in _texts(log)
     bpy.ops.riray.bake_estimate()
     log = []
@@ -88,6 +87,79 @@ def test_bake_panel_states(bl, tmp_path):
     log = []
     ui.draw_bake_panel(Layout(log), bpy.context)
     assert "STALE" in _texts(log)
+
+
+ADVANCED = ["viewpoint_depth", "direction_depth", "min_direction_depth", "tolerance_angle",
+            "tolerance_dist_percent", "search_steps", "viewpoint_refine", "finest_min_traced"]
+RULES = ["policy", "use_max_error", "max_error", "use_angle_threshold", "angle",
+         "use_distance_threshold", "distance_percent", "use_extrapolation", "extrapolation",
+         "use_null_interp", "use_path_identity", "use_mirror_normal", "use_mirror_newton"]
+
+
+def _draw(bpy, panel, obj):
+    ctx = type("Ctx", (), {"object": obj, "scene": bpy.context.scene})()
+    fake = type("P", (), {"layout": Layout()})()
+    getattr(bpy.types, panel).draw(fake, ctx)
+    return fake.layout
+
+
+@pytest.mark.parametrize("suffix,parent", [("", "RIRAY_PT_bake_object"),
+                                           ("_view3d", "RIRAY_PT_bake_view3d")])
+def test_bake_sub_panels(bl, suffix, parent):
+    """Advanced and Render-time Rules hang under the bake panel, in the Properties editor and
+    the sidebar alike, closed, split into label and field, with the settings in that order."""
+    bpy = bl.bpy
+    bpy.ops.surface.primitive_nurbs_surface_sphere_add()
+    obj = bpy.context.active_object
+    for panel, expected in (("RIRAY_PT_bake_advanced", ADVANCED),
+                            ("RIRAY_PT_render_rules", RULES)):
+        cls = getattr(bpy.types, panel + suffix)
+        assert cls.bl_parent_id == parent and "DEFAULT_CLOSED" in cls.bl_options
+        layout = _draw(bpy, panel + suffix, obj)
+        assert [x[1] for x in layout.log if x[0] == "prop"] == expected
+        assert layout.use_property_split
+    rules = _texts(_draw(bpy, "RIRAY_PT_render_rules" + suffix, obj).log)
+    assert "no re-bake" in rules
+
+
+def test_panel_fields_have_units(bl):
+    """Every float the bake panels show has a unit: angles in degrees (an angle field), box-
+    diagonal fractions in percent; the saved degree and fraction values stay under their old
+    names, hidden, and the fields read and write them."""
+    bpy = bl.bpy
+    bpy.ops.surface.primitive_nurbs_surface_sphere_add()
+    obj = bpy.context.active_object
+    props = obj.riray.bl_rna.properties
+    shown = ADVANCED + RULES
+    floats = [k for k in shown if props[k].type == "FLOAT"]
+    assert {props[k].subtype for k in floats} <= {"ANGLE", "PERCENTAGE", "FACTOR"}
+    assert {k for k in floats if props[k].subtype == "ANGLE"} == {"tolerance_angle", "angle",
+                                                                     "max_error"}
+    for k, p in props.items():
+        if p.type == "FLOAT" and k.endswith("_deg"):
+            assert p.is_hidden, k
+    p = obj.riray
+    p.max_error = math.radians(3.0)
+    assert p.max_error_deg == pytest.approx(3.0)
+    p.tolerance_deg = 0.25
+    assert p.tolerance_angle == pytest.approx(math.radians(0.25))
+    assert p.quality == "CUSTOM"
+    p.distance_percent = 7.5
+    assert p.distance == pytest.approx(0.075)
+    assert p.tolerance_dist_percent == pytest.approx(100 * p.tolerance_dist)
+
+
+def test_spline_list_rows(bl):
+    """The class list names each row by its spline's index."""
+    bpy = bl.bpy
+    bpy.ops.surface.primitive_nurbs_surface_sphere_add()
+    groups = bpy.context.active_object.riray
+    for value in (0, 0, 3):
+        groups.spline_groups.add().group = value
+    layout = Layout()
+    bpy.types.RIRAY_UL_splines.draw_item(None, bpy.context, layout, groups,
+                                         groups.spline_groups[2], 0, groups, "spline_groups_index")
+    assert ("label", "Spline 2") in layout.log and ("prop", "group") in layout.log
 
 
 @pytest.mark.parametrize("panel", ["RIRAY_PT_render", "RIRAY_PT_passes", "RIRAY_PT_world",

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from riray.cli import main
-from riray.render.exact import SceneTracer
+from riray.trace.scene_tracer import SceneTracer
 from riray.ritree import cache, filters
 from riray.ritree import tree as ritree
 from riray.ritree.bake import bake

@@ -9,6 +9,7 @@ import pytest
 
 from riray.cli import main
 from riray.render.exact import render_exact
+from riray.scene.camera import Shot
 from riray.trace.scene_tracer import SceneTracer, point_inside
 from riray.scene.io import SceneError, load_scene, look_at_matrix, scene_to_dict
 from riray.scene.model import Camera
@@ -142,9 +143,9 @@ def test_engine_refuses_image_sizes_the_flags_refuse(w, h):
     from riray.render.interpolated import render_tree
     scene = build("glass_sphere")
     with pytest.raises(ValueError, match="must be 1..16384 pixels"):
-        render_exact(scene, width=w, height=h, workers=1)
+        render_exact(SceneTracer(scene), Shot(width=w, height=h), workers=1)
     with pytest.raises(ValueError, match="must be 1..16384 pixels"):
-        render_tree(scene, tree=None, width=w, height=h, workers=1)
+        render_tree(SceneTracer(scene), None, Shot(width=w, height=h), workers=1)
 
 
 # --------------------------------------------------------------------------- camera inside
@@ -163,7 +164,7 @@ def test_camera_inside_the_object_is_refused(tmp_path, capsys):
     c = _centre(scene)
     _with_camera(scene, "inside", c + (0.02, -0.01, 0.03), c + (0, 1, 0))
     with pytest.raises(ValueError, match="camera 'inside' is inside the object 'glass_sphere'"):
-        render_exact(scene, camera="inside", width=8, height=8, workers=1)
+        render_exact(SceneTracer(scene), Shot(camera="inside", width=8, height=8), workers=1)
     from riray.scene.io import save_scene
     save_scene(scene, tmp_path / "s.json")
     line = _cli_rejects(capsys, ["render", str(tmp_path / "s.json"), "--camera", "inside",
@@ -195,7 +196,7 @@ def test_camera_in_the_vase_mouth_renders(tmp_path):
     scene = build("vase_mirror")
     c = _centre(scene)
     _with_camera(scene, "mouth", c, c + (0.05, 0, -1))
-    res = render_exact(scene, camera="mouth", width=6, height=6, workers=1)
+    res = render_exact(SceneTracer(scene), Shot(camera="mouth", width=6, height=6), workers=1)
     assert np.isfinite(res.image).all()
 
 

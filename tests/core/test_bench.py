@@ -13,7 +13,7 @@ from riray.bench.pareto import dominance
 from riray.bench.plots import pareto_front
 from riray.bench.ritree_bench import ROWS, BenchConfig, config_from_args
 from riray.cli import main
-from riray.render.interpolated import disagreements
+from riray.render.compare import disagreements
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -242,7 +242,7 @@ def test_passes_run_per_config_in_parallel(tmp_path):
     config measured alone in this process), as many as it asks for, each with its own exact
     half."""
     from riray.bench.ritree_bench import bake_view, measure_configs, measure_pass, paper
-    from riray.render.exact import SceneTracer
+    from riray.trace.scene_tracer import SceneTracer
     from riray.scene.samples import build
 
     scene = build("glass_sphere")

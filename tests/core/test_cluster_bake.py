@@ -21,7 +21,7 @@ import dask  # noqa: E402  (after the skip: installed with distributed)
 
 from riray import cluster as C  # noqa: E402
 from riray.cli import main  # noqa: E402
-from riray.render.exact import SceneTracer  # noqa: E402
+from riray.trace.scene_tracer import SceneTracer  # noqa: E402
 from riray.ritree import tree as ritree  # noqa: E402
 from riray.ritree.bake import BakeCancelled, bake  # noqa: E402
 from riray.ritree.region import region_for_cameras  # noqa: E402
@@ -228,7 +228,7 @@ def test_without_dask_the_scheduler_option_says_what_to_install(monkeypatch):
 
 def test_local_bake_and_imports_never_load_dask():
     code = ("import sys, riray.cli, riray.cluster, riray.ritree.bake as b\n"
-            "from riray.render.exact import SceneTracer\n"
+            "from riray.trace.scene_tracer import SceneTracer\n"
             "from riray.scene.samples import build\n"
             "from riray.ritree.tree import BakeParams\n"
             "b.bake(SceneTracer(build('glass_sphere')), BakeParams(viewpoint_depth=1, "

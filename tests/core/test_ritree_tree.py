@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 from riray.geometry.primitives import bilinear, box_faces, sphere
-from riray.render.exact import SceneTracer
+from riray.trace.scene_tracer import SceneTracer
 from riray.ritree import bake as bake_mod
 from riray.ritree import cache
 from riray.ritree import derive as derive_mod

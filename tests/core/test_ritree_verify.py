@@ -215,7 +215,7 @@ def test_old_layout_is_refused(tmp_path, sphere):
         ritree.load(path)
     # the current layout without the measurements is refused too
     cache.save_tree(path, json.loads(json.dumps(tree.header())), arrays)
-    with pytest.raises(cache.TreeCacheError, match="lacks arrays.*dir_err.*re-bake"):
+    with pytest.raises(cache.TreeCacheError, match="dir_err.*missing.*re-bake"):
         ritree.load(path)
 
 

@@ -147,6 +147,8 @@ def test_render_of_extreme_valid_scene_is_finite_in_float32():
     """Every colour, power and strength of the glass sphere scene at the format's maximum
     (1e12): the float32 image is finite (radiance x tint would overflow it unclamped)."""
     from riray.render.exact import render_exact
+    from riray.scene.camera import Shot
+    from riray.trace.scene_tracer import SceneTracer
     from riray.scene import samples
     s = samples.build("glass_sphere")
     for li in s.lights:
@@ -156,6 +158,6 @@ def test_render_of_extreme_valid_scene_is_finite_in_float32():
         m.strength = 1e12
     s.object.material.tint = (1e12,) * 3
     s.world.strength = s.world.ambient = 1e12
-    res = render_exact(s, camera="close", width=6, height=6, workers=1)
+    res = render_exact(SceneTracer(s), Shot(camera="close", width=6, height=6), workers=1)
     assert np.isfinite(res.image.astype(np.float32)).all()
     assert res.image.max() > 1e20                      # really that bright (tint x clamped)

@@ -4,7 +4,7 @@ slab of bilinear patches vs the textbook lateral shift, reversibility of refract
 import numpy as np
 import pytest
 
-from riray.geometry.primitives import bilinear, box_faces, sphere
+from riray.geometry.primitives import box_faces, sphere
 from riray.scene.model import ObjectMaterial, Patch, SpecularObject
 from riray.trace.objectfn import trace_object
 from riray.trace.patches import NEWTON_TOL_REL, PatchTracer

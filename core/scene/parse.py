@@ -1,0 +1,371 @@
+"""JSON scene dict -> Scene (``scene_from_dict``): every field validated, errors naming its
+JSON path (``validate``); image files loaded through ``images``."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ..geometry.knots import MAX_DEGREE, GeometryError, check_surface
+from ..geometry.nurbs import NurbsSurface
+from ..render.image import MAX_IMAGE_SIDE
+from .format import (CAMERA_FIELDS, CAMERA_KINDS, FORMAT, LIGHT_KINDS, MATERIAL_KINDS,
+                     OBJECT_MATERIAL_KINDS, SENSOR_FITS, TEXTURE_KINDS, TOP_KEYS, VERSION,
+                     WORLD_KINDS)
+from .graph import GraphError, graph_from_dict
+from .images import _Images
+from .model import (Camera, Light, Material, Mesh, ObjectMaterial, Patch, RenderSettings, Scene,
+                    SpecularObject, Texture, World)
+from .validate import (MAX_COORD, SceneError, _array, _at, _boolean, _check_object_offset,
+                       _coords, _fail, _integer, _kind, _list, _number, _obj, _point3,
+                       _positive_at, _rgb, _string, _tname, _unique, _vec3)
+
+# Most surface events per ray (render.max_events): each is one intersection pass over the rays
+# still bouncing, so a ray trapped in the object costs max_events passes.
+MAX_EVENTS = 1000
+RIGID_TOL = 1e-6       # max |R^T R - I| for a camera rotation (dimensionless)
+MAX_IOR = 100.0
+MAX_CLASS_ID = 2 ** 31 - 1     # class ids are Blender integer properties (32-bit)
+UNIT_TOL = 1e-9        # sun directions further than this from unit length are normalized on load
+
+
+def _texture(v, path: str, images: _Images) -> Texture:
+    if isinstance(v, (list, tuple)):
+        return Texture(kind="constant", color=_rgb(v, path))
+    kind = _kind(v, path, TEXTURE_KINDS, "constant")
+    fields = TEXTURE_KINDS[kind]
+    _obj(v, path, ("path",) if kind == "image" else (), ("kind",) + fields,
+         f" for texture kind {kind!r}")
+    t = Texture(kind=kind)
+    t.coords = _string(v.get("coords", "uv" if kind == "image" else "world"), _at(path, "coords"),
+                       ("world", "uv"), "coords")
+    if "color" in fields:
+        t.color = _rgb(v.get("color", t.color), _at(path, "color"))
+    if "color2" in fields:
+        t.color2 = _rgb(v.get("color2", t.color2), _at(path, "color2"))
+    if "scale" in fields:
+        t.scale = _number(v.get("scale", t.scale), _at(path, "scale"), gt=0)
+    if "axis" in fields:
+        t.axis = _integer(v.get("axis", 1 if t.coords == "uv" else 2), _at(path, "axis"), 0,
+                          1 if t.coords == "uv" else 2)
+    if kind == "gradient":
+        t.start = _number(v.get("start", t.start), _at(path, "start"))
+        t.end = _number(v.get("end", t.end), _at(path, "end"))
+        if t.start == t.end:
+            _fail(_at(path, "end"), f"must differ from start (both {t.start!r})")
+    if kind == "image":
+        t.path = _string(v["path"], _at(path, "path"))
+        t.image = images(t.path, _at(path, "path"))
+    return t
+
+
+# Pixels standing in for graph images when a scene is only validated (save_scene): the graph
+# checks that every image node has pixels, not what they are.
+UNLOADED_IMAGE = np.zeros((1, 1, 3))
+
+
+def _graph(v, path: str, images: _Images, owner: str):
+    """A shader node graph (riray.scene.graph); errors name ``owner`` and the node."""
+    def load(rel, where, encoded):
+        img = images(rel, _at(path, where), encoded)
+        return UNLOADED_IMAGE if img is None else img
+
+    try:
+        return graph_from_dict(v, load)
+    except GraphError as e:
+        _fail(_at(path, e.where) if e.where else path, f"{owner}: {e.msg}")
+
+
+def _material(v, path: str, images: _Images) -> Material:
+    if isinstance(v, dict) and v.get("kind") == "nodes":
+        _obj(v, path, ("name", "kind", "graph"), (), " for material kind 'nodes'")
+        name = _string(v["name"], _at(path, "name"))
+        return Material(name=name, kind="nodes",
+                        graph=_graph(v["graph"], _at(path, "graph"), images,
+                                     f"material {name!r}"))
+    _obj(v, path, ("name",), ("kind", "color", "strength"))
+    m = Material(name=_string(v["name"], _at(path, "name")))
+    m.kind = _string(v.get("kind", m.kind), _at(path, "kind"), MATERIAL_KINDS, "kind")
+    if "color" in v:
+        m.color = _texture(v["color"], _at(path, "color"), images)
+    m.strength = _number(v.get("strength", m.strength), _at(path, "strength"), ge=0)
+    return m
+
+
+def _object_material(v, path: str) -> ObjectMaterial:
+    m = ObjectMaterial()
+    _obj(v, path, (), ("kind", "ior", "tint", "base_color", "diffuse", "specular", "shininess"))
+    m.kind = _string(v.get("kind", m.kind), _at(path, "kind"), OBJECT_MATERIAL_KINDS, "kind")
+    m.ior = _number(v.get("ior", m.ior), _at(path, "ior"), ge=1 / MAX_IOR, le=MAX_IOR)
+    m.tint = _rgb(v.get("tint", m.tint), _at(path, "tint"))
+    m.base_color = _rgb(v.get("base_color", m.base_color), _at(path, "base_color"))
+    m.diffuse = _number(v.get("diffuse", m.diffuse), _at(path, "diffuse"), ge=0, le=1)
+    m.specular = _number(v.get("specular", m.specular), _at(path, "specular"), ge=0)
+    m.shininess = _number(v.get("shininess", m.shininess), _at(path, "shininess"), gt=0)
+    return m
+
+
+FACE_KEYS = ("triangles", "quads", "polygons")
+
+
+def _faces(d: dict, path: str, nverts: int) -> np.ndarray:
+    """Triangles (m, 3) int64 from any of "triangles", "quads" (split 0-1-2, 0-2-3) and
+    "polygons" (convex, fan-triangulated from their first vertex), in that order."""
+    parts = []
+    for key in FACE_KEYS:
+        if key not in d:
+            continue
+        p = _at(path, key)
+        if key == "polygons":
+            if not isinstance(d[key], list):
+                _fail(p, f"expected a list (got {_tname(d[key])})")
+            polys = [_array(f, _at(p, i), (None,), integer=True) for i, f in enumerate(d[key])]
+            for i, f in enumerate(polys):
+                if len(f) < 3:
+                    _fail(_at(p, i), f"a polygon needs at least 3 vertices (got {len(f)})")
+            flat = np.concatenate(polys) if polys else np.zeros(0, np.int64)
+            arr = flat[:, None]
+        else:
+            arr = _array(d[key], p, (None, 3 if key == "triangles" else 4), integer=True)
+        bad = (arr < 0) | (arr >= nverts)
+        if bad.any():
+            if key == "polygons":
+                k = int(np.argmax(bad[:, 0]))
+                sizes = np.cumsum([len(f) for f in polys])
+                i = int(np.searchsorted(sizes, k, side="right"))
+                j = k - (int(sizes[i - 1]) if i else 0)
+                where, val = f"{p}[{i}][{j}]", int(flat[k])
+            else:
+                i, j = (int(x) for x in np.argwhere(bad)[0])
+                where, val = f"{p}[{i}][{j}]", int(arr[i, j])
+            _fail(where, f"vertex index {val} out of range (the mesh has {nverts} vertices)")
+        if key == "triangles":
+            parts.append(arr)
+        elif key == "quads":
+            parts.append(arr[:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3))
+        elif polys:
+            sizes = np.array([len(f) for f in polys])
+            starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+            ntri = sizes - 2
+            first = np.repeat(starts, ntri)
+            j = np.arange(ntri.sum()) - np.repeat(np.cumsum(ntri) - ntri, ntri) + 1
+            parts.append(np.stack([flat[first], flat[first + j], flat[first + j + 1]], axis=1))
+    if not any(key in d for key in FACE_KEYS):
+        _fail(path, f"missing faces: give one or more of {', '.join(map(repr, FACE_KEYS))}")
+    tris = np.concatenate(parts or [np.zeros((0, 3), np.int64)]).astype(np.int64).reshape(-1, 3)
+    if len(tris) == 0:
+        _fail(path, "the mesh has no faces")
+    return tris
+
+
+def _patch(v, path: str) -> Patch:
+    kind = _kind(v, path, ("nurbs", "mesh"), None)
+    if kind == "mesh":
+        _obj(v, path, ("kind", "name", "class_id", "vertices"), FACE_KEYS, " for a mesh patch")
+        verts = _coords(v["vertices"], _at(path, "vertices"), (None, 3))
+        return Patch(name=_string(v["name"], _at(path, "name")),
+                     class_id=_integer(v["class_id"], _at(path, "class_id"), 0, MAX_CLASS_ID),
+                     vertices=verts, triangles=_faces(v, path, len(verts)))
+    _obj(v, path, ("kind", "name", "class_id", "degree_u", "degree_v", "knots_u", "knots_v",
+                   "points"), ("weights",), " for a nurbs patch")
+    name = _string(v["name"], _at(path, "name"))
+    class_id = _integer(v["class_id"], _at(path, "class_id"), 0, MAX_CLASS_ID)
+    deg = {d: _integer(v[f"degree_{d}"], _at(path, f"degree_{d}"), 1, MAX_DEGREE) for d in "uv"}
+    pts = _coords(v["points"], _at(path, "points"), (None, None, 3))
+    counts = {"u": pts.shape[0], "v": pts.shape[1]}
+    knots = {}
+    for d in "uv":
+        p = _at(path, f"knots_{d}")
+        if counts[d] < deg[d] + 1:
+            _fail(_at(path, "points"), f"{counts[d]} control points along {d}; need at least "
+                                       f"degree_{d} + 1 = {deg[d] + 1}")
+        k = _array(v[f"knots_{d}"], p, (None,))
+        want = counts[d] + deg[d] + 1
+        if len(k) != want:
+            _fail(p, f"expected n_{d} + degree_{d} + 1 = {counts[d]} + {deg[d]} + 1 = {want} "
+                     f"knots (got {len(k)})")
+        dec = np.diff(k) < 0
+        if dec.any():
+            i = int(np.argmax(dec)) + 1
+            _fail(_at(p, i), f"knots must be non-decreasing "
+                             f"(got {float(k[i])!r} after {float(k[i - 1])!r})")
+        knots[d] = k
+    if "weights" in v:
+        w = _array(v["weights"], _at(path, "weights"), pts.shape[:2])
+        _positive_at(w, _at(path, "weights"), "weight")
+    else:
+        w = np.ones(pts.shape[:2])
+    surf = NurbsSurface(deg["u"], deg["v"], knots["u"], knots["v"], pts, w)
+    try:
+        check_surface(surf, path)
+    except GeometryError as e:
+        raise SceneError(str(e)) from None
+    return Patch(name=name, class_id=class_id, surface=surf)
+
+
+def _mesh(v, path: str, materials: dict) -> Mesh:
+    _obj(v, path, ("name", "vertices", "material"), FACE_KEYS + ("uvs", "smooth"))
+    verts = _coords(v["vertices"], _at(path, "vertices"), (None, 3))
+    mesh = Mesh(name=_string(v["name"], _at(path, "name")), vertices=verts,
+                triangles=_faces(v, path, len(verts)),
+                material=_string(v["material"], _at(path, "material")))
+    if mesh.material not in materials:
+        _fail(_at(path, "material"), f"material {mesh.material!r} is not defined "
+                                     f"(materials: {', '.join(materials) or 'none'})")
+    if "uvs" in v:
+        mesh.uvs = _array(v["uvs"], _at(path, "uvs"), (len(verts), 2))
+    mesh.smooth = _boolean(v.get("smooth", False), _at(path, "smooth"))
+    tex = materials[mesh.material].color
+    if tex.kind != "constant" and tex.coords == "uv" and mesh.uvs is None:
+        _fail(path, f"material {mesh.material!r} has a uv-mapped texture but the mesh has no 'uvs'")
+    return mesh
+
+
+def _light(v, path: str) -> Light:
+    kind = _kind(v, path, LIGHT_KINDS, "point")
+    fields = LIGHT_KINDS[kind]
+    _obj(v, path, ("name",), ("kind",) + fields, f" for light kind {kind!r}")
+    li = Light(name=_string(v["name"], _at(path, "name")), kind=kind)
+    li.color = _rgb(v.get("color", li.color), _at(path, "color"))
+    li.shadows = _boolean(v.get("shadows", li.shadows), _at(path, "shadows"))
+    if kind == "point":
+        li.position = _point3(v.get("position", li.position), _at(path, "position"))
+        li.power = _number(v.get("power", li.power), _at(path, "power"), ge=0)
+    else:
+        d = np.array(_vec3(v.get("direction", li.direction), _at(path, "direction")))
+        n = float(np.linalg.norm(d))
+        if not n > 0:
+            _fail(_at(path, "direction"), "must not be the zero vector")
+        li.direction = tuple(float(x) for x in (d / n if abs(n - 1) > UNIT_TOL else d))
+        li.strength = _number(v.get("strength", li.strength), _at(path, "strength"), ge=0)
+    return li
+
+
+def _world(v, path: str, images: _Images) -> World:
+    kind = _kind(v, path, WORLD_KINDS, "color")
+    fields = WORLD_KINDS[kind]
+    _obj(v, path, {"image": ("path",), "nodes": ("graph",)}.get(kind, ()), ("kind",) + fields,
+         f" for world kind {kind!r}")
+    w = World(kind=kind)
+    if "color" in fields:
+        w.color = _rgb(v.get("color", w.color), _at(path, "color"))
+    if kind == "gradient":
+        w.zenith = _rgb(v.get("zenith", w.zenith), _at(path, "zenith"))
+    if kind == "image":
+        w.path = _string(v["path"], _at(path, "path"))
+        w.image = images(w.path, _at(path, "path"))
+    if kind == "nodes":
+        w.graph = _graph(v["graph"], _at(path, "graph"), images, "the world")
+    w.strength = _number(v.get("strength", w.strength), _at(path, "strength"), ge=0)
+    w.ambient = _number(v.get("ambient", w.ambient), _at(path, "ambient"), ge=0)
+    return w
+
+
+def look_at_matrix(location, look_at, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world 4x4 for a camera at ``location`` looking at ``look_at`` (local -Z) with
+    local +Y towards ``up``. Raises ValueError when the view direction is zero or parallel to up."""
+    loc = np.asarray(location, dtype=np.float64)
+    fwd = np.asarray(look_at, dtype=np.float64) - loc
+    if not np.linalg.norm(fwd) > 0:
+        raise ValueError("look_at equals location")
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, np.asarray(up, dtype=np.float64))
+    if not np.linalg.norm(right) > 1e-9:
+        raise ValueError("up is zero or parallel to the viewing direction")
+    right /= np.linalg.norm(right)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, np.cross(right, fwd), -fwd, loc
+    return m
+
+
+def _camera(v, path: str) -> Camera:
+    if isinstance(v, dict) and "matrix_world" in v:
+        _obj(v, path, ("name", "matrix_world"), CAMERA_FIELDS,
+             " (a camera has either matrix_world or location/look_at/up)")
+        mp = _at(path, "matrix_world")
+        m = _array(v["matrix_world"], mp, (4, 4))
+        far = np.abs(m[:3, 3]) > MAX_COORD
+        if far.any():
+            i = int(np.argmax(far))
+            _fail(f"{mp}[{i}][3]", f"magnitude must be <= {MAX_COORD:g} (got {float(m[i, 3])!r})")
+        if m[3].tolist() != [0, 0, 0, 1]:
+            _fail(_at(mp, 3), f"bottom row must be [0, 0, 0, 1] (got {m[3].tolist()})")
+        r = m[:3, :3]
+        err = float(np.abs(r.T @ r - np.eye(3)).max())
+        if err > RIGID_TOL:
+            _fail(mp, f"not rigid: rotation part is not orthonormal (max |R^T R - I| = {err:.3g} "
+                      f"> {RIGID_TOL}); remove scale/shear")
+        if np.linalg.det(r) < 0:
+            _fail(mp, "not rigid: rotation part is a reflection (determinant < 0)")
+    else:
+        _obj(v, path, ("name", "location", "look_at"), ("up",) + CAMERA_FIELDS,
+             " (a camera has either matrix_world or location/look_at/up)")
+        loc = _point3(v["location"], _at(path, "location"))
+        tgt = _point3(v["look_at"], _at(path, "look_at"))
+        up = _vec3(v.get("up", (0.0, 0.0, 1.0)), _at(path, "up"))
+        try:
+            m = look_at_matrix(loc, tgt, up)
+        except ValueError as e:
+            _fail(path, str(e))
+    c = Camera(name=_string(v["name"], _at(path, "name")), matrix_world=m)
+    c.kind = _string(v.get("kind", c.kind), _at(path, "kind"), CAMERA_KINDS, "kind")
+    c.sensor_fit = _string(v.get("sensor_fit", c.sensor_fit), _at(path, "sensor_fit"),
+                           SENSOR_FITS, "sensor_fit")
+    for key in ("lens", "sensor_width", "sensor_height", "ortho_scale", "clip_start"):
+        setattr(c, key, _number(v.get(key, getattr(c, key)), _at(path, key), gt=0))
+    for key in ("shift_x", "shift_y"):
+        setattr(c, key, _number(v.get(key, getattr(c, key)), _at(path, key)))
+    c.clip_end = _number(v.get("clip_end", c.clip_end), _at(path, "clip_end"), gt=c.clip_start)
+    return c
+
+
+def _parse(d, base_dir: str | None, load_images: bool) -> Scene:
+    if not isinstance(d, dict):
+        _fail("", f"expected a JSON object (got {_tname(d)})")
+    if d.get("format") != FORMAT:
+        _fail("format", f"expected {FORMAT!r} (got {d.get('format')!r}); not a riray scene file")
+    if d.get("version") != VERSION or type(d.get("version")) is not int:
+        _fail("version", f"unsupported version {d.get('version')!r} (this riray reads version "
+                         f"{VERSION})")
+    _obj(d, "", ("format", "version", "object"), TOP_KEYS)
+    images = _Images(base_dir, load_images)
+
+    render = RenderSettings()
+    r = _obj(d.get("render", {}), "render", (), ("width", "height", "max_events"))
+    render.width = _integer(r.get("width", render.width), "render.width", 1, MAX_IMAGE_SIDE)
+    render.height = _integer(r.get("height", render.height), "render.height", 1, MAX_IMAGE_SIDE)
+    render.max_events = _integer(r.get("max_events", render.max_events), "render.max_events", 1,
+                                 MAX_EVENTS)
+
+    mats = [_material(m, _at("materials", i), images)
+            for i, m in enumerate(_list(d.get("materials", []), "materials"))]
+    _unique(mats, "materials", "material")
+    materials = {m.name: m for m in mats}
+
+    o = _obj(d["object"], "object", ("patches",), ("name", "material"))
+    patches = [_patch(p, _at("object.patches", i))
+               for i, p in enumerate(_list(o["patches"], "object.patches"))]
+    if not patches:
+        _fail("object.patches", "the specular object needs at least one patch")
+    _check_object_offset(patches)
+    obj = SpecularObject(name=_string(o.get("name", "object"), "object.name"), patches=patches,
+                         material=_object_material(o.get("material", {}), "object.material"))
+
+    env = _obj(d.get("environment", {}), "environment", (), ("meshes",))
+    meshes = [_mesh(m, _at("environment.meshes", i), materials)
+              for i, m in enumerate(_list(env.get("meshes", []), "environment.meshes"))]
+    lights = [_light(li, _at("lights", i))
+              for i, li in enumerate(_list(d.get("lights", []), "lights"))]
+    world = _world(d.get("world", {}), "world", images)
+    cameras = [_camera(c, _at("cameras", i))
+               for i, c in enumerate(_list(d.get("cameras", []), "cameras"))]
+    _unique(cameras, "cameras", "camera")
+    return Scene(object=obj, meshes=meshes, materials=materials, lights=lights, world=world,
+                 cameras=cameras, render=render, name=_string(d.get("name", "scene"), "name"))
+
+
+def scene_from_dict(d: dict, base_dir: str | os.PathLike | None = None) -> Scene:
+    """Validate a scene dict (JSON-shaped: dicts, lists, str, int, float, bool) and build the
+    Scene; image paths resolve against ``base_dir`` (None: the current directory) and are loaded."""
+    return _parse(d, None if base_dir is None else os.fspath(base_dir), load_images=True)

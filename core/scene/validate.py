@@ -1,0 +1,212 @@
+"""Checks of JSON scene values: each returns the value as the model stores it or raises
+:class:`SceneError` naming the field's JSON path (``_at``) and the problem; the magnitude limits
+of the format (docs/scene-format.md, "Supported range")."""
+
+from __future__ import annotations
+
+import difflib
+
+import numpy as np
+
+# Magnitudes (docs/scene-format.md, "Supported range"). Any number: products of a few stay far
+# from float overflow (shading multiplies colours, powers, strengths). Positions (m): the
+# tracer's tolerances are fractions of the object's size (1e-9 of its box diagonal D for a hit,
+# 1e-7 between events), so one control point 1e9 m out makes them metres and the object
+# vanishes. And the object must lie within MAX_OBJECT_OFFSET * D of the origin: coordinates
+# are rounded to ~1.1e-16 |x|, which must stay below the Newton tolerance 1e-11 D (measured:
+# a sphere 2e4 D from the origin traces as at the origin, 2e5 D away it does not).
+MAX_NUMBER = 1e12
+MAX_COORD = 1e5
+MAX_OBJECT_OFFSET = 1e4
+
+
+class SceneError(ValueError):
+    """An invalid scene; the message starts with the JSON path of the field."""
+
+
+# --------------------------------------------------------------------------- primitive checks
+def _at(path: str, key: str | int) -> str:
+    if isinstance(key, int):
+        return f"{path}[{key}]"
+    return f"{path}.{key}" if path else key
+
+
+def _index(path: str, idx) -> str:
+    return path + "".join(f"[{int(i)}]" for i in idx)
+
+
+def _fail(path: str, msg: str):
+    raise SceneError(f"{path or 'top level'}: {msg}")
+
+
+def _tname(v) -> str:
+    return {dict: "an object", list: "a list", str: "a string", bool: "a boolean",
+            type(None): "null"}.get(type(v), type(v).__name__)
+
+
+def _obj(v, path: str, required=(), optional=(), what: str = "") -> dict:
+    """Check that ``v`` is a JSON object with all ``required`` and no unknown keys."""
+    if not isinstance(v, dict):
+        _fail(path, f"expected an object (got {_tname(v)})")
+    allowed = tuple(required) + tuple(optional)
+    for k in v:
+        if k not in allowed:
+            near = difflib.get_close_matches(k, allowed, n=1)
+            hint = f"; did you mean {near[0]!r}?" if near else f"; allowed: {', '.join(allowed)}"
+            _fail(path, f"unknown key {k!r}{what}{hint}")
+    for k in required:
+        if k not in v:
+            _fail(path, f"missing required key {k!r}")
+    return v
+
+
+def _number(v, path: str, gt=None, ge=None, le=None) -> float:
+    if type(v) not in (int, float):
+        _fail(path, f"expected a number (got {_tname(v)} {v!r})")
+    try:
+        x = float(v)
+    except OverflowError:
+        _fail(path, f"must be finite (got {v!r})")
+    if not np.isfinite(x):
+        _fail(path, f"must be finite (got {x!r})")
+    if abs(x) > MAX_NUMBER:
+        _fail(path, f"magnitude must be <= {MAX_NUMBER:g} (got {x!r})")
+    if gt is not None and not x > gt:
+        _fail(path, f"must be > {gt} (got {x!r})")
+    if ge is not None and not x >= ge:
+        _fail(path, f"must be >= {ge} (got {x!r})")
+    if le is not None and not x <= le:
+        _fail(path, f"must be <= {le} (got {x!r})")
+    return x
+
+
+def _integer(v, path: str, lo=None, hi=None) -> int:
+    if type(v) is not int:
+        _fail(path, f"expected an integer (got {_tname(v)} {v!r})")
+    if lo is not None and v < lo:
+        _fail(path, f"must be >= {lo} (got {v})")
+    if hi is not None and v > hi:
+        _fail(path, f"must be <= {hi} (got {v})")
+    return v
+
+
+def _string(v, path: str, choices=None, what: str = "value") -> str:
+    if type(v) is not str or not v:
+        _fail(path, f"expected a non-empty string (got {_tname(v)} {v!r})")
+    if choices is not None and v not in choices:
+        _fail(path, f"unknown {what} {v!r} (expected one of: {', '.join(choices)})")
+    return v
+
+
+def _boolean(v, path: str) -> bool:
+    if type(v) is not bool:
+        _fail(path, f"expected true or false (got {_tname(v)} {v!r})")
+    return v
+
+
+def _array(v, path: str, shape: tuple, integer: bool = False,
+           limit: float = MAX_NUMBER) -> np.ndarray:
+    """Nested JSON lists -> float64 (or int64) array of ``shape`` (None: any length, the same for
+    all siblings); every entry must be a finite number of magnitude <= ``limit`` (an integer
+    when ``integer``)."""
+    dims = list(shape)
+    ok = (int,) if integer else (int, float)
+
+    def walk(x, p, d):
+        if d == len(dims):
+            if type(x) not in ok:
+                what = "an integer" if integer else "a number"
+                _fail(p, f"expected {what} (got {_tname(x)} {x!r})")
+            return
+        if not isinstance(x, (list, tuple)):
+            _fail(p, f"expected a list (got {_tname(x)})")
+        if dims[d] is None:
+            dims[d] = len(x)
+        elif len(x) != dims[d]:
+            _fail(p, f"expected {dims[d]} entries (got {len(x)})")
+        if d == len(dims) - 1 and all(type(e) in ok for e in x):
+            return
+        for i, e in enumerate(x):
+            walk(e, _at(p, i), d + 1)
+
+    walk(v, path, 0)
+    dims = [0 if n is None else n for n in dims]
+    try:
+        arr = np.array(v, dtype=np.int64 if integer else np.float64).reshape(dims)
+    except OverflowError:
+        _fail(path, "integer out of range" if integer else "number out of range")
+    if not integer:
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            _fail(_index(path, idx), f"must be finite (got {float(arr[idx])!r})")
+        big = np.abs(arr) > limit
+        if big.any():
+            idx = tuple(int(i) for i in np.argwhere(big)[0])
+            _fail(_index(path, idx), f"magnitude must be <= {limit:g} (got {float(arr[idx])!r})")
+    return arr
+
+
+def _coords(v, path: str, shape: tuple) -> np.ndarray:
+    """Positions in metres: an array whose entries lie within +-MAX_COORD."""
+    return _array(v, path, shape, limit=MAX_COORD)
+
+
+def _vec3(v, path: str) -> tuple[float, float, float]:
+    return tuple(float(x) for x in _array(v, path, (3,)))
+
+
+def _point3(v, path: str) -> tuple[float, float, float]:
+    return tuple(float(x) for x in _coords(v, path, (3,)))
+
+
+def _rgb(v, path: str) -> tuple[float, float, float]:
+    c = _array(v, path, (3,))
+    if (c < 0).any():
+        i = int(np.argmax(c < 0))
+        _fail(_at(path, i), f"colour components must be >= 0 (got {float(c[i])!r})")
+    return tuple(float(x) for x in c)
+
+
+def _positive_at(arr: np.ndarray, path: str, what: str) -> None:
+    bad = ~(arr > 0)
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        _fail(_index(path, idx), f"{what} must be > 0 (got {float(arr[idx])!r})")
+
+
+def _kind(d, path: str, kinds, default: str | None) -> str:
+    if not isinstance(d, dict):
+        _fail(path, f"expected an object (got {_tname(d)})")
+    if "kind" not in d and default is None:
+        _fail(path, "missing required key 'kind'")
+    return _string(d.get("kind", default), _at(path, "kind"), tuple(kinds), "kind")
+
+
+def _list(v, path: str) -> list:
+    if not isinstance(v, list):
+        _fail(path, f"expected a list (got {_tname(v)})")
+    return v
+
+
+def _unique(items, path: str, what: str) -> None:
+    seen = set()
+    for i, it in enumerate(items):
+        if it.name in seen:
+            _fail(_at(_at(path, i), "name"), f"duplicate {what} name {it.name!r}")
+        seen.add(it.name)
+
+
+def _check_object_offset(patches) -> None:
+    """The object's points lie within MAX_OBJECT_OFFSET box diagonals of the origin."""
+    pts = [p.surface.points.reshape(-1, 3) if p.surface is not None else p.vertices
+           for p in patches]
+    allp = np.concatenate(pts)
+    diag = float(np.linalg.norm(allp.max(axis=0) - allp.min(axis=0)))
+    far = np.abs(allp).max()
+    if far > MAX_OBJECT_OFFSET * diag:
+        i = next(i for i, q in enumerate(pts) if np.abs(q).max() == far)
+        key = "vertices" if patches[i].surface is None else "points"
+        _fail(f"object.patches[{i}].{key}", f"the object lies {far:.3g} m from the origin, more "
+              f"than {MAX_OBJECT_OFFSET:g} times its size ({diag:.3g} m): coordinates that far "
+              "out cannot be traced to the tracer's tolerance; move the scene to the origin")
