@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .atomic import atomic_write, command_output
+from .files import atomic_write, command_output, open_regular
 
 
 _BAR = {"open": False}    # a progress bar is mid-line on stderr (an error message starts anew)
@@ -265,7 +265,7 @@ def _check_npy_header(path):
     data: checked before any data is read (a truncated file or a header claiming more rows than
     the file holds is an error, not an allocation)."""
     fmt = np.lib.format
-    with open(path, "rb") as f:
+    with open_regular(path) as f:
         if f.read(4) == b"PK\x03\x04":
             raise ValueError(f"{path}: expected a .npy file holding one array (got an .npz "
                              "archive)")

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.render.image import srgb_to_linear
+from ..core.imageio import srgb_to_linear
 
 MAX_REROUTES = 256      # reroutes / muted nodes in a row before a chain counts as broken
 RENDER_TARGETS = ("ALL", "CYCLES")   # output node targets a Cycles-like renderer uses

@@ -405,7 +405,7 @@ class RIRAY_OT_export_scene(bpy.types.Operator):
 def write_scene_json(scene, path: str) -> None:
     """save_scene, writing in-memory images (textures, world, graph image nodes) as .npy files
     beside the JSON."""
-    from ..core.render.image import write_float_image
+    from ..core.imageio import write_float_image
     from ..core.scene.io import in_memory_images
     stem = os.path.splitext(path)[0]
     folder = os.path.dirname(path)

@@ -47,7 +47,7 @@ from riray.bench.compare import whitted_scene  # noqa: E402
 from riray.bench.exact_bench import machine  # noqa: E402
 from riray.bench.ritree_bench import BenchConfig, _json_safe, bake_view  # noqa: E402
 from riray.render.exact import render_exact  # noqa: E402
-from riray.render.image import write_png  # noqa: E402
+from riray.imageio import write_png  # noqa: E402
 from riray.render.interpolated import psnr, render_tree  # noqa: E402
 from riray.scene.camera import Shot  # noqa: E402
 from riray.trace.scene_tracer import SceneTracer  # noqa: E402

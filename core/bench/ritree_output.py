@@ -234,7 +234,7 @@ def sweeps_markdown(rows) -> str:
 
 def save_images(folder, stem, images) -> None:
     """A view's renders as PNGs ``stem_KEY.png`` in ``folder`` (``*_traced`` masks white)."""
-    from ..render.image import write_png, write_png_u8
+    from ..imageio import write_png, write_png_u8
     folder.mkdir(parents=True, exist_ok=True)
     for k, img in images.items():
         if k.endswith("_traced"):

@@ -20,12 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_write_text
+from ..files import atomic_write_text
 from ..scene.camera import Shot, check_image_size
 from ..trace.scene_tracer import SceneTracer, check_camera_outside
 from .film import Film
 from .frame import ExactAnswerer, peak_rss_mib, render_frame
-from .image import write_float_image, write_png
+from ..imageio import write_float_image, write_png
 
 
 @dataclass

@@ -198,8 +198,8 @@ def save_tree_render(res: RenderResult, folder) -> list:
     import json
     from pathlib import Path
 
-    from ..atomic import atomic_write_text
-    from .image import write_float_image, write_png, write_png_u8
+    from ..files import atomic_write_text
+    from ..imageio import write_float_image, write_png, write_png_u8
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     out = []

@@ -36,7 +36,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from ..atomic import atomic_write
+from ..files import atomic_write, open_regular
 from ..scene.model import SpecularObject
 from . import filters as F
 
@@ -458,7 +458,7 @@ def load_tree(path: str | os.PathLike, *, verify: bool = True,
     problem raises TreeCacheError naming the file.
     """
     path = os.fspath(path)
-    with open(path, "rb") as f:
+    with open_regular(path) as f:
         layout, head = _read_layout(path, f)
         have = layout.header.get("fingerprint")
         if expect_fingerprint is not None and have != expect_fingerprint:
@@ -484,7 +484,7 @@ def load_tree(path: str | os.PathLike, *, verify: bool = True,
 def describe(path: str | os.PathLike) -> dict:
     """Summary for ``riray info``, reading only the preamble and header (no payload)."""
     path = os.fspath(path)
-    with open(path, "rb") as f:
+    with open_regular(path) as f:
         layout, _ = _read_layout(path, f)
     return {"path": path, "format_version": FORMAT_VERSION, "file_bytes": layout.file_bytes,
             "payload_bytes": layout.payload_bytes, "header": layout.header,

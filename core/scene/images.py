@@ -7,7 +7,7 @@ import os
 
 import numpy as np
 
-from ..render.image import ImageError, read_float_image, read_png, read_png_samples
+from ..imageio import ImageError, read_float_image, read_png, read_png_samples
 from .model import Scene
 from .validate import _fail
 

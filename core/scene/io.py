@@ -17,7 +17,8 @@ import json
 import os
 import sys
 
-from ..render.image import MAX_IMAGE_SIDE, atomic_write, read_regular
+from ..files import atomic_write, read_regular
+from ..imageio import MAX_IMAGE_SIDE
 from .format import scene_to_dict
 from .images import in_memory_images
 from .model import Scene

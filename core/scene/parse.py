@@ -9,7 +9,7 @@ import numpy as np
 
 from ..geometry.knots import MAX_DEGREE, GeometryError, check_surface
 from ..geometry.nurbs import NurbsSurface
-from ..render.image import MAX_IMAGE_SIDE
+from ..imageio import MAX_IMAGE_SIDE
 from .format import (CAMERA_FIELDS, CAMERA_KINDS, FORMAT, LIGHT_KINDS, MATERIAL_KINDS,
                      OBJECT_MATERIAL_KINDS, SENSOR_FITS, TEXTURE_KINDS, TOP_KEYS, VERSION,
                      WORLD_KINDS)

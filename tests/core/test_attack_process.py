@@ -1,5 +1,5 @@
 """The process under attack: a full disk, Ctrl-C at the worst moment, SIGKILL mid-write and
-bad or dead Dask schedulers. Every output goes through riray.atomic (named error, previous
+bad or dead Dask schedulers. Every output goes through riray.files (named error, previous
 file kept, no partial or temporary file), Ctrl-C is one line and exit 130, and a bad
 --scheduler is refused at once."""
 
@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from riray import atomic
+from riray import files
 from riray.cli import main
-from riray.render.image import write_float_image, write_png, write_png_u8
+from riray.imageio import write_float_image, write_png, write_png_u8
 from riray.ritree import cache
 
 SCRIPT = [sys.executable, "-m", "riray.cli"]
@@ -36,7 +36,7 @@ def _dev_full(monkeypatch):
     def to_dev_full(tmp):
         open(tmp, "xb").close()
         return open("/dev/full", "wb")
-    monkeypatch.setattr(atomic, "_open_temp", to_dev_full)
+    monkeypatch.setattr(files, "_open_temp", to_dev_full)
 
 
 @pytest.fixture
@@ -59,8 +59,8 @@ WRITERS = {
     "png": lambda p: write_png(p, np.full((4, 4, 3), 0.5)),
     "mask png": lambda p: write_png_u8(p, np.zeros((4, 4), np.uint8)),
     "npy": lambda p: write_float_image(p, np.ones((64, 64, 3))),
-    "npz": lambda p: atomic.atomic_write(p, lambda f: np.savez_compressed(f, a=np.ones(5000))),
-    "json": lambda p: atomic.atomic_write_text(p, json.dumps({"x": list(range(5000))})),
+    "npz": lambda p: files.atomic_write(p, lambda f: np.savez_compressed(f, a=np.ones(5000))),
+    "json": lambda p: files.atomic_write_text(p, json.dumps({"x": list(range(5000))})),
     "rit": lambda p: cache.save_tree(p, {"h": 1}, {"a": np.arange(5000)}),
 }
 
@@ -70,7 +70,7 @@ def test_disk_full_names_the_file_and_keeps_the_previous_one(kind, tmp_path, mon
     path = tmp_path / f"out.{kind.split()[-1]}"
     path.write_bytes(b"previous")
     _dev_full(monkeypatch)
-    with pytest.raises(atomic.WriteError) as e:
+    with pytest.raises(files.WriteError) as e:
         WRITERS[kind](path)
     assert str(e.value) == f"cannot write {path}: No space left on device"
     assert e.value.errno == errno.ENOSPC
@@ -199,7 +199,7 @@ def test_cli_ctrl_c_before_the_rename_keeps_the_previous_file(tmp_path, monkeypa
 
 # --------------------------------------------------------------------------- stale temp files
 def _temp(path, pid, host=None, age_s=0.0):
-    host = host or atomic._host_tag()
+    host = host or files._host_tag()
     t = Path(f"{path}.{pid}-{host}.{os.urandom(6).hex()}.tmp")
     t.write_bytes(b"partial")
     if age_s:
@@ -219,7 +219,7 @@ def test_next_write_removes_only_abandoned_temp_files(tmp_path):
     longer than STALE_TMP_S go; a live writer's (a concurrent bake of the same file) and
     another host's recent one stay, as do other targets' and other files."""
     path = tmp_path / "t.rit"
-    old = atomic.STALE_TMP_S + 60
+    old = files.STALE_TMP_S + 60
     dead = _temp(path, _dead_pid())
     live = _temp(path, os.getppid())
     live_idle = _temp(path, os.getppid(), age_s=old)
@@ -228,7 +228,7 @@ def test_next_write_removes_only_abandoned_temp_files(tmp_path):
     other_target = _temp(tmp_path / "u.rit", _dead_pid())
     other = tmp_path / "t.rit.notes.tmp"
     other.write_bytes(b"mine")
-    atomic.atomic_write_text(path, "new")
+    files.atomic_write_text(path, "new")
     assert path.read_text() == "new"
     left = set(os.listdir(tmp_path))
     assert left == {p.name for p in (path, live, remote, other_target, other)}
@@ -237,10 +237,10 @@ def test_next_write_removes_only_abandoned_temp_files(tmp_path):
 
 def test_sigkill_mid_write_leaves_a_temp_file_the_next_write_removes(tmp_path):
     path = tmp_path / "t.rit"
-    code = ("import sys, time\nfrom riray import atomic\n"
+    code = ("import sys, time\nfrom riray import files\n"
             "def write(f):\n    f.write(b'x' * 100000); f.flush(); print('writing', flush=True)"
             "\n    time.sleep(60)\n"
-            f"atomic.atomic_write({str(path)!r}, write)\n")
+            f"files.atomic_write({str(path)!r}, write)\n")
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout.readline() == "writing\n"
@@ -248,7 +248,7 @@ def test_sigkill_mid_write_leaves_a_temp_file_the_next_write_removes(tmp_path):
         proc.kill()
         proc.wait(timeout=30)
     left = os.listdir(tmp_path)
-    assert len(left) == 1 and atomic.temp_pattern(path).fullmatch(left[0])
+    assert len(left) == 1 and files.temp_pattern(path).fullmatch(left[0])
     cache.save_tree(path, {"h": 1}, {"a": np.arange(3)})
     assert os.listdir(tmp_path) == ["t.rit"]
 

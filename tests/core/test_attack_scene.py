@@ -19,7 +19,7 @@ from riray.geometry.knots import (MAX_WEIGHT_RATIO, MIN_KNOT_DOMAIN, MIN_SPAN_FR
                                   check_surface, insert_knot)
 from riray.geometry.nurbs import evaluate, normals
 from riray.geometry.primitives import sphere
-from riray.render.image import MAX_IMAGE_SIDE, ImageError, decode_png
+from riray.imageio import MAX_IMAGE_SIDE, ImageError, decode_png
 from riray.scene import io as scene_io
 from riray.scene.io import SceneError, load_scene, look_at_matrix, save_scene, scene_to_dict
 from riray.scene.model import Camera, ObjectMaterial, Patch, Scene, SpecularObject, World
@@ -237,6 +237,26 @@ def test_fifo_scene_and_image_refused(tmp_path, sphere_dict):
     e = _no_hang(lambda: load_scene(_write(tmp_path, d)))
     assert isinstance(e, SceneError) and re.match(r"world\.path: .*sky\.npy: not a regular "
                                                   r"file", str(e)), e
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
+@pytest.mark.parametrize("cmd", [["info", "{fifo}"],
+                                 ["trace-rays", "glass_sphere", "--rays", "{fifo}", "--out",
+                                  "{tmp}/o.npz"],
+                                 ["render", "glass_sphere", "--tree", "{fifo}", "--out",
+                                  "{tmp}/r", "--quiet"]])
+def test_fifo_tree_and_rays_refused(tmp_path, capsys, cmd):
+    """A FIFO named as the RI-Tree or the rays file is refused at once, in one line."""
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    argv = [a.format(fifo=fifo, tmp=tmp_path) for a in cmd]
+    box = {}
+    t = threading.Thread(target=lambda: box.update(rc=main(argv)), daemon=True)
+    t.start()
+    t.join(20.0)
+    assert not t.is_alive(), "blocked reading a FIFO"
+    err = capsys.readouterr().err.strip().splitlines()
+    assert box["rc"] == 2 and err[-1].endswith("pipe: not a regular file"), err
 
 
 def test_scene_size_cap(tmp_path, sphere_dict, monkeypatch):

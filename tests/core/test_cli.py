@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from riray.cli import build_parser, main
-from riray.render.image import read_png
+from riray.imageio import read_png
 from riray.scene.io import load_scene, save_scene
 from riray.scene.samples import GLASS_SPHERE_RADIUS, build
 

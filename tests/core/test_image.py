@@ -7,7 +7,7 @@ import zlib
 import numpy as np
 import pytest
 
-from riray.render.image import (ImageError, decode_png, encode_png, linear_to_srgb,
+from riray.imageio import (ImageError, decode_png, encode_png, linear_to_srgb,
                                 linear_to_u8, read_float_image, read_png, read_png_samples,
                                 srgb_to_linear, write_float_image, write_png, write_png_u8)
 

@@ -554,7 +554,7 @@ def test_graph_errors_from_code_name_the_node():
 def test_srgb_image_node_reads_the_png_samples(tmp_path):
     """With ``srgb`` an image node keeps a PNG's encoded samples and linearizes after the
     blend; without it the PNG is linearized on load (as textures are)."""
-    from riray.render.image import linear_to_u8, write_png
+    from riray.imageio import linear_to_u8, write_png
     px = np.random.default_rng(2).uniform(0.0, 1.0, (2, 3, 3))
     write_png(tmp_path / "t.png", px)
     codes = linear_to_u8(px) / 255.0

@@ -17,7 +17,7 @@ import pytest
 from riray.geometry.primitives import sphere
 from riray.ritree import cache, codec, filters
 from riray.ritree.cache import StaleTreeError, TreeCacheError
-from riray.render.image import encode_png
+from riray.imageio import encode_png
 from riray.scene.model import ObjectMaterial, Patch, SpecularObject
 
 RNG = np.random.default_rng(11)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from riray.render.image import write_float_image, write_png_u8
+from riray.imageio import write_float_image, write_png_u8
 from riray.scene.io import SceneError, load_scene, save_scene, scene_from_dict, scene_to_dict
 
 

@@ -1,5 +1,6 @@
-"""Atomic file output: every file riray writes (PNG, .npy, .npz, JSON, .rit) goes through
-:func:`atomic_write`.
+"""Files riray reads and writes. Input: :func:`open_regular` / :func:`read_regular` read only
+regular files, bounded (a FIFO or a device is refused, never waited on or read without end).
+Output: every file riray writes (PNG, .npy, .npz, JSON, .rit) goes through :func:`atomic_write`.
 
 The data goes to a temporary file in the target's folder, named
 ``TARGET.<pid>-<host>.<random>.tmp`` (pid of the writer, 8 hex digits of its host name's
@@ -26,6 +27,7 @@ import os
 import re
 import signal
 import socket
+import stat
 import threading
 import time
 from collections.abc import Callable
@@ -267,3 +269,33 @@ def _sync_folder(folder: str) -> None:
         pass
     finally:
         os.close(fd)
+
+
+def open_regular(path: str | os.PathLike, max_bytes: int | None = None) -> BinaryIO:
+    """``path`` opened for binary reading; ValueError naming it unless it is a regular file (of
+    at most ``max_bytes`` bytes, when given). Opened non-blocking, so a FIFO is refused rather
+    than waited on."""
+    nonblock = getattr(os, "O_NONBLOCK", 0)
+    fd = os.open(path, os.O_RDONLY | nonblock | getattr(os, "O_BINARY", 0))
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise ValueError(f"{os.fspath(path)}: not a regular file")
+        if max_bytes is not None and info.st_size > max_bytes:
+            raise ValueError(f"{os.fspath(path)}: {info.st_size} bytes, more than the "
+                             f"{max_bytes} read")
+        if nonblock:
+            os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_regular(path: str | os.PathLike, max_bytes: int) -> bytes:
+    """The bytes of the regular file ``path`` (see :func:`open_regular`), read bounded."""
+    with open_regular(path, max_bytes) as f:
+        data = f.read(max_bytes + 1)
+    if len(data) > max_bytes:
+        raise ValueError(f"{os.fspath(path)}: more than {max_bytes} bytes")
+    return data

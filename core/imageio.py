@@ -9,14 +9,13 @@ os.replace; an OSError names the file and its cause).
 from __future__ import annotations
 
 import os
-import stat
 import struct
 import zlib
 from typing import BinaryIO
 
 import numpy as np
 
-from ..atomic import atomic_write
+from .files import atomic_write, open_regular, read_regular
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # colour type -> samples per pixel; allowed bit depths
@@ -225,35 +224,6 @@ def decode_png(data: bytes) -> tuple[np.ndarray, int]:
             raise ImageError("palette index out of range")
         return palette[idx], 255
     return samples, (1 << depth) - 1
-
-
-def open_regular(path: str | os.PathLike, max_bytes: int) -> BinaryIO:
-    """``path`` opened for binary reading; ValueError naming it unless it is a regular file of at
-    most ``max_bytes`` bytes. Opened non-blocking, so a FIFO is refused rather than waited on."""
-    nonblock = getattr(os, "O_NONBLOCK", 0)
-    fd = os.open(path, os.O_RDONLY | nonblock | getattr(os, "O_BINARY", 0))
-    try:
-        info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode):
-            raise ValueError(f"{os.fspath(path)}: not a regular file")
-        if info.st_size > max_bytes:
-            raise ValueError(f"{os.fspath(path)}: {info.st_size} bytes, more than the "
-                             f"{max_bytes} read")
-        if nonblock:
-            os.set_blocking(fd, True)
-        return os.fdopen(fd, "rb")
-    except BaseException:
-        os.close(fd)
-        raise
-
-
-def read_regular(path: str | os.PathLike, max_bytes: int) -> bytes:
-    """The bytes of the regular file ``path`` (see :func:`open_regular`), read bounded."""
-    with open_regular(path, max_bytes) as f:
-        data = f.read(max_bytes + 1)
-    if len(data) > max_bytes:
-        raise ValueError(f"{os.fspath(path)}: more than {max_bytes} bytes")
-    return data
 
 
 def read_png_samples(path: str | os.PathLike) -> tuple[np.ndarray, int]:
