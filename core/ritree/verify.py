@@ -1,7 +1,8 @@
 """Verifying the viewpoint-level interpolation (the paper's "future work": non-uniform viewpoint
 subdivision, here driven by measured error).
 
-The direction trees are verified from their own viewpoints only (bake.py's midpoint tests).
+The direction trees are verified from their own viewpoints only (bake/directions.py's
+midpoint tests).
 Between viewpoints nothing is: a query ray entering the box inside a viewpoint cell blends the
 answers of the cell's four corner viewpoints. This module measures that blend where it is
 furthest from the corners - at the cell's centre and edge midpoints - on the rays the scene's

@@ -1,10 +1,10 @@
 """Newton's method on (s, t) of rational Bezier nets seen end-on along their rays.
 
-A ray is written as the intersection of two planes through it (``_ray_planes``); each net is
-projected onto them once per (ray, net) pair (``_project``: two scalar nets and the weights),
-which also serves the end-on convex-hull test (``_hull_meets``). Each iteration then evaluates
+A ray is written as the intersection of two planes through it (``ray_planes``); each net is
+projected onto them once per (ray, net) pair (``project_nets``: two scalar nets and the weights),
+which also serves the end-on convex-hull test (``hull_meets``). Each iteration then evaluates
 three scalar polynomials and solves a 2x2 system (``newton``), from seeds on the net's corner
-triangles (``_seed``). Distances are in scene units (metres); (s, t) are net-local, in [0, 1]^2.
+triangles (``newton_seed``). Distances are in scene units (metres); (s, t) are net-local, in [0, 1]^2.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ HULL_POINT_REL = 1e-12
 
 def newton(proj, p, q, s, t, tol, stats):
     """Newton iterations in place on (s, t) for nets of degree (p, q) projected onto their
-    rays' planes (``_project``: proj (n, (p+1)(q+1), 3)); returns the converged mask: the
+    rays' planes (``project_nets``: proj (n, (p+1)(q+1), 3)); returns the converged mask: the
     residual distance from the ray is at most ``tol`` (m). Each step component is clipped to
     MAX_STEP; at a singular Jacobian the step is the least-squares one; runs that leave
     [-1, 2]^2 or meet a zero Jacobian stop unconverged. The live runs are kept packed (no
@@ -101,7 +101,7 @@ def _newton_block(proj, p, q, s, t, tol, stats):
     return ok
 
 
-def _ray_planes(d):
+def ray_planes(d):
     """Two unit normals orthogonal to each direction and to each other (Duff et al.'s basis)."""
     sign = np.where(d[:, 2] >= 0.0, 1.0, -1.0)
     a = -1.0 / (sign + d[:, 2])
@@ -111,7 +111,7 @@ def _ray_planes(d):
     return n1, n2
 
 
-def _seed(ctrl, ro, rd):
+def newton_seed(ctrl, ro, rd):
     """Newton seeds (s, t) from the ray's hit on the two triangles spanned by the net's corner
     points (its surface corners); the net's midpoint where the plane hit lies far outside."""
     corners = ctrl[:, [0, -1, 0, -1], [0, 0, -1, -1]]
@@ -140,12 +140,12 @@ def _seed(ctrl, ro, rd):
 
 
 
-def _project(ctrl, ro, rd):
+def project_nets(ctrl, ro, rd):
     """Homogeneous nets ``ctrl`` (n, p+1, q+1, 4) projected onto their rays' two planes
-    (``_ray_planes``: n_i . x = c_i through the origin ``ro``): (n, (p+1)(q+1), 3) holding per
+    (``ray_planes``: n_i . x = c_i through the origin ``ro``): (n, (p+1)(q+1), 3) holding per
     control point A = n1 . X - c1 w, B = n2 . X - c2 w and w. A / w and B / w are the point's
     coordinates in the plane seen end-on along the ray, which passes through (0, 0)."""
-    n1, n2 = _ray_planes(rd)
+    n1, n2 = ray_planes(rd)
     h = ctrl.reshape(len(ctrl), -1, 4)
     nrm = np.stack([n1, n2], axis=2)                                    # (n, 3, 2)
     proj = np.empty(h.shape[:2] + (3,))
@@ -156,11 +156,11 @@ def _project(ctrl, ro, rd):
     return proj
 
 
-def _hull_meets(proj):
+def hull_meets(proj):
     """False where the ray certainly misses the net's surface: the ray's line, seen end-on in
     the plane of (n1, n2), lies outside the 2D convex hull of the control points (convex hull
     property; w > 0 keeps the homogeneous points' angles). ``proj``: the projected nets
-    (``_project``). First the hull's bounding box (all points on one side of one ray plane),
+    (``project_nets``). First the hull's bounding box (all points on one side of one ray plane),
     then the hull itself: the line is outside it when the points' angles around it leave a
     gap wider than pi."""
     f1, f2 = proj[..., 0], proj[..., 1]

@@ -9,7 +9,7 @@ Method (after Martin et al.'s practical NURBS ray tracing, adapted to numpy):
    midpoint if the plane hit is far outside), then Newton iterates on (s, t) in the
    sub-patch's local coordinates with the ray written as the intersection of two planes (a
    2x2 system, well conditioned away from exact tangency). The net is projected onto the
-   planes once per pair (``_project``: two scalar nets and the weights), which also serves
+   planes once per pair (``project_nets``: two scalar nets and the weights), which also serves
    the end-on hull test; each iteration then evaluates three scalar polynomials. Converged
    roots inside the sub-patch are hits; the nearest wins.
 3. Fallback (``roots``): a pair whose Newton run found no root in its net, or a grazing root
@@ -24,21 +24,20 @@ Units: t is the distance along unit directions, in scene units (metres).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from ..scene.model import Mesh, SpecularObject
+from .hits import PatchHit
 from .meshes import MeshSet
-from .newton import (MAX_STEP, NEWTON_BLOCK, NEWTON_ITERS, NEWTON_TOL_REL, _hull_meets, _project,
-                     _ray_planes, newton)
+from .newton import (MAX_STEP, NEWTON_BLOCK, NEWTON_ITERS, NEWTON_TOL_REL, hull_meets, project_nets,
+                     ray_planes, newton)
 from .roots import DEGENERATE_REL, PARAM_MARGIN, RootSearch
 from .subpatches import bezier_pieces, flat_subpatches
 
 # the tracer, and what importers take from here of the modules it is built from
 __all__ = ["DEGENERATE_REL", "MAX_STEP", "NEWTON_BLOCK", "NEWTON_ITERS", "NEWTON_TOL_REL",
-           "PARAM_MARGIN", "T_MIN_REL", "PatchHit", "PatchTracer", "_hull_meets", "_project",
-           "_ray_planes"]
+           "PARAM_MARGIN", "T_MIN_REL", "PatchHit", "PatchTracer", "hull_meets", "project_nets",
+           "ray_planes"]
 
 # Self-intersection guard: hits closer than this (relative to the object diagonal) are ignored.
 T_MIN_REL = 1e-9
@@ -50,39 +49,6 @@ STAGE_MIN_PAIRS = 4096
 # Pairs solved per batch: bounds memory (a degree-5 pair gathers 36 x 4 float64 control values)
 # and keeps a batch's arrays small (exact renders ran ~5 % faster than with 1 << 16).
 PAIR_CHUNK = 1 << 14
-
-
-@dataclass
-class PatchHit:
-    """Nearest hits of a batch of rays. Arrays are (N,) or (N,3); misses have t = inf,
-    patch = -1, cls = -1 and zero point/normal/uv. ``normal`` is the unit geometric normal as the
-    surface is oriented (not flipped toward the ray); (u, v) are the patch's own parameters
-    (barycentric (b1, b2) for mesh patches)."""
-
-    hit: np.ndarray
-    t: np.ndarray
-    point: np.ndarray
-    normal: np.ndarray
-    patch: np.ndarray
-    cls: np.ndarray
-    u: np.ndarray
-    v: np.ndarray
-
-    @classmethod
-    def misses(cls, n: int) -> "PatchHit":
-        """``n`` rays that hit nothing (yet)."""
-        return cls(hit=np.zeros(n, bool), t=np.full(n, np.inf), point=np.zeros((n, 3)),
-                   normal=np.zeros((n, 3)), patch=np.full(n, -1, np.int64),
-                   cls=np.full(n, -1, np.int64), u=np.zeros(n), v=np.zeros(n))
-
-    def take(self, idx) -> "PatchHit":
-        """The rows ``idx`` of every array."""
-        return PatchHit(**{k: v[idx] for k, v in self.__dict__.items()})
-
-    def put(self, rows, other: "PatchHit") -> None:
-        """Overwrite rows ``rows`` with ``other`` (len(rows) hits), in place."""
-        for k, v in self.__dict__.items():
-            v[rows] = getattr(other, k)
 
 
 
@@ -218,10 +184,10 @@ class PatchTracer:
                 part = idx[c:c + PAIR_CHUNK]
                 search.solve_pairs(ray[part], prim[part])
 
-    def _newton(self, proj, p, q, s, t):
+    def solve_newton(self, proj, p, q, s, t):
         """``newton.newton`` at this object's tolerance (NEWTON_TOL_REL of its diagonal): in
         place on (s, t) for nets of degree (p, q) projected onto their rays' planes
-        (``_project``); returns the converged mask."""
+        (``project_nets``); returns the converged mask."""
         return newton(proj, p, q, s, t, NEWTON_TOL_REL * self.diag, self.stats)
 
 

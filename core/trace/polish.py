@@ -3,7 +3,7 @@
 The RI-Tree query knows, for a mirror ray whose interpolating samples all reflect once off one
 patch, that patch and an interpolated parameter (u, v) close to the ray's hit on it. Newton's
 method on the Bezier piece holding the seed (the tracer's two-plane form,
-``PatchTracer._newton``) converges to that hit in a few iterations: about a fifth of what the
+``PatchTracer.solve_newton``) converges to that hit in a few iterations: about a fifth of what the
 full search costs (BVH walk, candidate pairs, seeds, fallback splits). It does not tell
 whether the ray meets something else first; that the caller takes from the samples.
 
@@ -18,7 +18,7 @@ import numpy as np
 
 from ..geometry import bezier as bz
 from ..geometry.nurbs import normals as nurbs_normals
-from .patches import DEGENERATE_REL, PARAM_MARGIN, PatchHit, PatchTracer, _project
+from .patches import DEGENERATE_REL, PARAM_MARGIN, PatchHit, PatchTracer, project_nets
 
 # A root that converged outside its Bezier piece (the seed lay in a neighbouring piece) is
 # looked for again from that root, in the piece that holds it: this many runs in all.
@@ -123,7 +123,7 @@ def _piece_of(tracer, patch, u, v):
 
 
 def _newton(tracer, o, d, k, s, t):
-    """PatchTracer._newton on pieces ``k`` (one batch per degree); (s, t) updated in place;
+    """PatchTracer.solve_newton on pieces ``k`` (one batch per degree); (s, t) updated in place;
     returns the converged mask."""
     ok = np.zeros(len(k), bool)
     grp = tracer.piece_group[k]
@@ -131,7 +131,7 @@ def _newton(tracer, o, d, k, s, t):
         m = np.flatnonzero(grp == g)
         nets = tracer.piece_nets[g][tracer.piece_local[k[m]]]
         ss, tt = s[m], t[m]
-        ok[m] = tracer._newton(_project(nets, o[m], d[m]), nets.shape[1] - 1,
+        ok[m] = tracer.solve_newton(project_nets(nets, o[m], d[m]), nets.shape[1] - 1,
                                nets.shape[2] - 1, ss, tt)
         s[m], t[m] = ss, tt
     return ok

@@ -8,18 +8,15 @@ children and retries them. Distances are in scene units (metres).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..geometry import bezier as bz
 from ..geometry.nurbs import normals as nurbs_normals
 from .boxes import slab_intervals
-from .newton import NEWTON_TOL_REL, _hull_meets, _project, _seed
+from .newton import NEWTON_TOL_REL, hull_meets, project_nets, newton_seed
+from .hits import PatchHit
 from .subpatches import SubPatchGroup
-
-if TYPE_CHECKING:
-    from .patches import PatchHit, PatchTracer
 
 # Newton may step outside the sub-patch while converging; a root is accepted when its local
 # coordinates lie within this margin of [0, 1] (neighbouring sub-patches overlap on edges).
@@ -95,11 +92,11 @@ class _Roots:
 
 
 class RootSearch:
-    """One intersect call's search of (ray, net) pairs: rays (o, d) (N, 3) with unit d, their
-    segment starts ``tmin`` (N,) (m); ``best_t`` (N,) (m, the segment ends before any hit) and
-    ``res`` are updated in place with each nearer hit found."""
+    """One intersect call's search of (ray, net) pairs of ``tracer`` (a PatchTracer): rays
+    (o, d) (N, 3) with unit d, their segment starts ``tmin`` (N,) (m); ``best_t`` (N,) (m, the
+    segment ends before any hit) and ``res`` are updated in place with each nearer hit found."""
 
-    def __init__(self, tracer: PatchTracer, o, d, tmin, best_t, res: PatchHit):
+    def __init__(self, tracer, o, d, tmin, best_t, res: PatchHit):
         self.tracer, self.diag = tracer, tracer.diag
         self.o, self.d, self.tmin, self.best_t, self.res = o, d, tmin, best_t, res
 
@@ -126,8 +123,8 @@ class RootSearch:
         if len(pairs.r) == 0:
             return
         ro, rd = self.o[pairs.r], self.d[pairs.r]
-        proj = _project(pairs.ctrl, ro, rd)
-        meet = _hull_meets(proj)
+        proj = project_nets(pairs.ctrl, ro, rd)
+        meet = hull_meets(proj)
         if not meet.all():
             ro, rd, proj = (x[meet] for x in (ro, rd, proj))
             pairs = pairs.take(meet)
@@ -136,12 +133,12 @@ class RootSearch:
         self.tracer.stats["pairs"] += len(pairs.r)
         ctrl = pairs.ctrl
         if levels == FALLBACK_LEVELS:
-            s, t = _seed(ctrl, ro, rd)
+            s, t = newton_seed(ctrl, ro, rd)
         else:
             # a retried net's corner seed led Newton astray once (a grazing ray's corner-triangle
             # hit can lie nearer the ray's other crossing, outside the net): start from the middle
             s, t = np.full(len(pairs.r), 0.5), np.full(len(pairs.r), 0.5)
-        ok = self.tracer._newton(proj, ctrl.shape[1] - 1, ctrl.shape[2] - 1, s, t)
+        ok = self.tracer.solve_newton(proj, ctrl.shape[1] - 1, ctrl.shape[2] - 1, s, t)
         in_net = (s >= -PARAM_MARGIN) & (s <= 1 + PARAM_MARGIN) & (t >= -PARAM_MARGIN) \
             & (t <= 1 + PARAM_MARGIN)
         # no root at all, or a root outside the net (another root may hide in it: a grazing
@@ -166,7 +163,7 @@ class RootSearch:
         A root past the piece's edge (on the net's polynomial continued across a piece
         boundary: a seam, a knot line) is no hit, but its twin may lie in the net, just inside
         the boundary, where Newton from inside the net went past it: it gets the twin run too.
-        ``proj``: the nets projected onto their rays' planes (``_project``), for the twin runs.
+        ``proj``: the nets projected onto their rays' planes (``project_nets``), for the twin runs.
         Returns the mask of pairs whose root is grazing (their net may hold a second root) and
         whose twin run, if any, did not find a second root."""
         good = np.flatnonzero(ok)
@@ -257,7 +254,7 @@ class RootSearch:
             return found
         s2, t2, pairs, proj = s2[near], t2[near], pairs.take(near), proj[near]
         p, q = pairs.ctrl.shape[1] - 1, pairs.ctrl.shape[2] - 1
-        ok2 = self.tracer._newton(proj, p, q, s2, t2)
+        ok2 = self.tracer.solve_newton(proj, p, q, s2, t2)
         self.accept(pairs, proj, ok2, s2, t2, twin=False)
         # a twin run that converged away from the first root found the twin (in this net or a
         # neighbour's); one that failed or came back to the first root settles nothing

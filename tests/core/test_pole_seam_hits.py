@@ -18,7 +18,7 @@ from riray.geometry.primitives import sphere, transform
 from riray.scene.model import Patch, SpecularObject
 from riray.scene.samples import build
 from riray.trace.objectfn import refract, trace_object
-from riray.trace.patches import PatchTracer, _project
+from riray.trace.patches import PatchTracer, project_nets
 
 N_RAYS = 4000
 # Near-grazing rays: incidence cosines drawn log-uniform in this range (89.97 to 88.3 degrees).
@@ -184,7 +184,7 @@ def test_newton_starts_on_a_collapsed_edge(glass_ball):
     cos = rng.uniform(0.3, 1.0, n)[:, None]
     d = -cos * normals + np.sqrt(1.0 - cos * cos) * e1
     s, t = np.round(s_root), np.zeros(n)
-    ok = tracer._newton(_project(nets, target - d, d), 2, 2, s, t)
+    ok = tracer.solve_newton(project_nets(nets, target - d, d), 2, 2, s, t)
     assert np.count_nonzero(ok) >= 0.98 * n
     P = bezier_eval(nets[ok], s[ok], t[ok], 0)[0]
     # the hit is 1.5e-8 m or more from the pole; Newton's tolerance is 5e-12 m / cos

@@ -15,7 +15,7 @@ from riray.scene.model import Mesh, Patch, SpecularObject
 from riray.scene.samples import build
 from riray.trace.meshes import MeshSet
 from riray.trace import patches as P
-from riray.trace.patches import PatchTracer, _hull_meets, _project, _ray_planes
+from riray.trace.patches import PatchTracer, hull_meets, project_nets, ray_planes
 
 
 def in_some_triangle(p, eps):
@@ -36,7 +36,7 @@ def in_some_triangle(p, eps):
 
 
 def test_end_on_hull_test_matches_triangle_cover():
-    """Random rational nets (weights > 0) and rays aimed near them: _hull_meets is True
+    """Random rational nets (weights > 0) and rays aimed near them: hull_meets is True
     wherever the ray's line passes through the control hull (never a false miss), and False
     wherever it clearly does not."""
     rng = np.random.default_rng(11)
@@ -49,8 +49,8 @@ def test_end_on_hull_test_matches_triangle_cover():
     d /= np.linalg.norm(d, axis=1)[:, None]
     aim = pts.reshape(n, 16, 3).mean(axis=1) + rng.normal(size=(n, 3)) * 0.15
     o = aim - 3.0 * d
-    got = _hull_meets(_project(ctrl, o, d))
-    n1, n2 = _ray_planes(d)
+    got = hull_meets(project_nets(ctrl, o, d))
+    n1, n2 = ray_planes(d)
     flat = pts.reshape(n, 16, 3) - o[:, None, :]
     p2 = np.stack([flat @ n1.T, flat @ n2.T], -1)[np.arange(n), :, np.arange(n)]
     scale = np.abs(p2).max(axis=(1, 2))[:, None]
@@ -62,7 +62,7 @@ def test_end_on_hull_test_matches_triangle_cover():
 
 
 def plain_newton(ctrl, s, t, n1, c1, n2, c2, tol):
-    """The tracer's Newton rules (PatchTracer._newton's docstring) written on the surface's
+    """The tracer's Newton rules (PatchTracer.solve_newton's docstring) written on the surface's
     points: residuals n_i . S(s, t) - c_i, Jacobian rows n_i . S_s, n_i . S_t; each step
     component clipped to MAX_STEP; the least-squares (pseudo-inverse) step at a singular
     Jacobian; a run stops unconverged on a zero Jacobian or outside [-1, 2]^2."""
@@ -113,11 +113,11 @@ def test_newton_on_projected_nets_matches_plain_newton():
     past = rng.random(n) < 0.25
     o = X + np.where(past[:, None], rng.normal(size=(n, 3)), 0.0) - 2.0 * d
     s, t = np.clip(s0 + rng.normal(0, 0.15, n), 0, 1), np.clip(t0 + rng.normal(0, 0.15, n), 0, 1)
-    n1, n2 = _ray_planes(d)
+    n1, n2 = ray_planes(d)
     tol = P.NEWTON_TOL_REL * tracer.diag
     want, ws, wt = plain_newton(ctrl, s, t, n1, np.sum(n1 * o, 1), n2, np.sum(n2 * o, 1), tol)
     gs, gt = s.copy(), t.copy()
-    got = tracer._newton(_project(ctrl, o, d), 3, 3, gs, gt)
+    got = tracer.solve_newton(project_nets(ctrl, o, d), 3, 3, gs, gt)
     assert want[~past].mean() > 0.9 and (~want[past]).mean() > 0.5
     assert np.mean(got == want) > 0.998             # rounding may tip a run at the tolerance
     both = got & want
