@@ -9,10 +9,10 @@ import numpy as np
 
 from ..imageio import ImageError, read_float_image, read_png, read_png_samples
 from .model import Scene
-from .validate import _fail
+from .validate import fail
 
 
-class _Images:
+class SceneImages:
     """Loads image files relative to ``base_dir`` once each (or not at all when disabled)."""
 
     def __init__(self, base_dir: str | None, load: bool):
@@ -28,21 +28,21 @@ class _Images:
         if key not in self.cache:
             ext = os.path.splitext(full)[1].lower()
             if ext not in (".png", ".npy"):
-                _fail(path, f"unsupported image type {ext!r} (use .png or .npy)")
+                fail(path, f"unsupported image type {ext!r} (use .png or .npy)")
             if not os.path.exists(full):
-                _fail(path, f"image file not found: {full}")
+                fail(path, f"image file not found: {full}")
             try:
-                img = _read_image(full, key[1])
+                img = read_image(full, key[1])
             except ImageError as e:
-                _fail(path, str(e))
+                fail(path, str(e))
             except OSError as e:
-                _fail(path, f"cannot read {full} ({e.strerror})")
-            _check_radiance(img, full, path)
+                fail(path, f"cannot read {full} ({e.strerror})")
+            check_radiance(img, full, path)
             self.cache[key] = img
         return self.cache[key]
 
 
-def _read_image(full: str, encoded: bool) -> np.ndarray:
+def read_image(full: str, encoded: bool) -> np.ndarray:
     """(H, W, 3) float64 pixels of a .png or .npy file: linear, or with ``encoded`` (a PNG) its
     sRGB-encoded samples in [0, 1]. Sizes are checked from the headers before decoding."""
     if encoded:
@@ -53,13 +53,13 @@ def _read_image(full: str, encoded: bool) -> np.ndarray:
     return read_png(full) if full.lower().endswith(".png") else read_float_image(full)
 
 
-def _check_radiance(img: np.ndarray, full: str, path: str) -> None:
+def check_radiance(img: np.ndarray, full: str, path: str) -> None:
     """Image pixels are radiance (or reflectance): finite and >= 0."""
     if not np.isfinite(img).all():
-        _fail(path, f"image {full} contains NaN/inf")
+        fail(path, f"image {full} contains NaN/inf")
     if (img < 0).any():
         i, j, c = (int(x) for x in np.argwhere(img < 0)[0])
-        _fail(path, f"image {full} has negative values ({float(img[i, j, c])!r} at row {i} "
+        fail(path, f"image {full} has negative values ({float(img[i, j, c])!r} at row {i} "
                     f"column {j} channel {c}): pixels are radiance, which is >= 0")
 
 

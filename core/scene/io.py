@@ -22,8 +22,8 @@ from ..imageio import MAX_IMAGE_SIDE
 from .format import scene_to_dict
 from .images import in_memory_images
 from .model import Scene
-from .parse import _parse, look_at_matrix, scene_from_dict
-from .validate import MAX_COORD, SceneError, _at
+from .parse import parse_scene, look_at_matrix, scene_from_dict
+from .validate import MAX_COORD, SceneError, at_key
 
 __all__ = ["MAX_COORD", "MAX_IMAGE_SIDE", "MAX_SCENE_BYTES", "SceneError", "in_memory_images",
            "load_scene", "look_at_matrix", "save_scene", "scene_from_dict", "scene_to_dict"]
@@ -70,7 +70,7 @@ def _long_int_path(text: str) -> str:
         if isinstance(v, _LongInt):
             return f"{path or 'top level'}: integer of {v.digits} digits is out of range"
         items = v.items() if isinstance(v, dict) else enumerate(v) if isinstance(v, list) else ()
-        stack.extend((x, _at(path, k)) for k, x in reversed(list(items)))
+        stack.extend((x, at_key(path, k)) for k, x in reversed(list(items)))
     return unknown
 
 
@@ -124,6 +124,6 @@ def save_scene(scene: Scene, path: str | os.PathLike) -> None:
     image files themselves are not written.
     """
     d = scene_to_dict(scene)
-    _parse(d, None, load_images=False)
+    parse_scene(d, None, load_images=False)
     text = _dumps(d) + "\n"
     atomic_write(path, lambda f: f.write(text.encode("utf-8")))

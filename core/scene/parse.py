@@ -14,12 +14,12 @@ from .format import (CAMERA_FIELDS, CAMERA_KINDS, FORMAT, LIGHT_KINDS, MATERIAL_
                      OBJECT_MATERIAL_KINDS, SENSOR_FITS, TEXTURE_KINDS, TOP_KEYS, VERSION,
                      WORLD_KINDS)
 from .graph import GraphError, graph_from_dict
-from .images import _Images
+from .images import SceneImages
 from .model import (Camera, Light, Material, Mesh, ObjectMaterial, Patch, RenderSettings, Scene,
                     SpecularObject, Texture, World)
-from .validate import (MAX_COORD, SceneError, _array, _at, _boolean, _check_object_offset,
-                       _coords, _fail, _integer, _kind, _list, _number, _obj, _point3,
-                       _positive_at, _rgb, _string, _tname, _unique, _vec3)
+from .validate import (MAX_COORD, SceneError, read_array, at_key, read_boolean, check_object_offset,
+                       read_coords, fail, read_integer, read_kind, read_list, read_number, read_fields, read_point3,
+                       check_positive, read_rgb, read_string, type_name, check_unique, read_vec3)
 
 # Most surface events per ray (render.max_events): each is one intersection pass over the rays
 # still bouncing, so a ray trapped in the object costs max_events passes.
@@ -30,33 +30,33 @@ MAX_CLASS_ID = 2 ** 31 - 1     # class ids are Blender integer properties (32-bi
 UNIT_TOL = 1e-9        # sun directions further than this from unit length are normalized on load
 
 
-def _texture(v, path: str, images: _Images) -> Texture:
+def _texture(v, path: str, images: SceneImages) -> Texture:
     if isinstance(v, (list, tuple)):
-        return Texture(kind="constant", color=_rgb(v, path))
-    kind = _kind(v, path, TEXTURE_KINDS, "constant")
+        return Texture(kind="constant", color=read_rgb(v, path))
+    kind = read_kind(v, path, TEXTURE_KINDS, "constant")
     fields = TEXTURE_KINDS[kind]
-    _obj(v, path, ("path",) if kind == "image" else (), ("kind",) + fields,
+    read_fields(v, path, ("path",) if kind == "image" else (), ("kind",) + fields,
          f" for texture kind {kind!r}")
     t = Texture(kind=kind)
-    t.coords = _string(v.get("coords", "uv" if kind == "image" else "world"), _at(path, "coords"),
+    t.coords = read_string(v.get("coords", "uv" if kind == "image" else "world"), at_key(path, "coords"),
                        ("world", "uv"), "coords")
     if "color" in fields:
-        t.color = _rgb(v.get("color", t.color), _at(path, "color"))
+        t.color = read_rgb(v.get("color", t.color), at_key(path, "color"))
     if "color2" in fields:
-        t.color2 = _rgb(v.get("color2", t.color2), _at(path, "color2"))
+        t.color2 = read_rgb(v.get("color2", t.color2), at_key(path, "color2"))
     if "scale" in fields:
-        t.scale = _number(v.get("scale", t.scale), _at(path, "scale"), gt=0)
+        t.scale = read_number(v.get("scale", t.scale), at_key(path, "scale"), gt=0)
     if "axis" in fields:
-        t.axis = _integer(v.get("axis", 1 if t.coords == "uv" else 2), _at(path, "axis"), 0,
+        t.axis = read_integer(v.get("axis", 1 if t.coords == "uv" else 2), at_key(path, "axis"), 0,
                           1 if t.coords == "uv" else 2)
     if kind == "gradient":
-        t.start = _number(v.get("start", t.start), _at(path, "start"))
-        t.end = _number(v.get("end", t.end), _at(path, "end"))
+        t.start = read_number(v.get("start", t.start), at_key(path, "start"))
+        t.end = read_number(v.get("end", t.end), at_key(path, "end"))
         if t.start == t.end:
-            _fail(_at(path, "end"), f"must differ from start (both {t.start!r})")
+            fail(at_key(path, "end"), f"must differ from start (both {t.start!r})")
     if kind == "image":
-        t.path = _string(v["path"], _at(path, "path"))
-        t.image = images(t.path, _at(path, "path"))
+        t.path = read_string(v["path"], at_key(path, "path"))
+        t.image = images(t.path, at_key(path, "path"))
     return t
 
 
@@ -65,44 +65,44 @@ def _texture(v, path: str, images: _Images) -> Texture:
 UNLOADED_IMAGE = np.zeros((1, 1, 3))
 
 
-def _graph(v, path: str, images: _Images, owner: str):
+def _graph(v, path: str, images: SceneImages, owner: str):
     """A shader node graph (riray.scene.graph); errors name ``owner`` and the node."""
     def load(rel, where, encoded):
-        img = images(rel, _at(path, where), encoded)
+        img = images(rel, at_key(path, where), encoded)
         return UNLOADED_IMAGE if img is None else img
 
     try:
         return graph_from_dict(v, load)
     except GraphError as e:
-        _fail(_at(path, e.where) if e.where else path, f"{owner}: {e.msg}")
+        fail(at_key(path, e.where) if e.where else path, f"{owner}: {e.msg}")
 
 
-def _material(v, path: str, images: _Images) -> Material:
+def _material(v, path: str, images: SceneImages) -> Material:
     if isinstance(v, dict) and v.get("kind") == "nodes":
-        _obj(v, path, ("name", "kind", "graph"), (), " for material kind 'nodes'")
-        name = _string(v["name"], _at(path, "name"))
+        read_fields(v, path, ("name", "kind", "graph"), (), " for material kind 'nodes'")
+        name = read_string(v["name"], at_key(path, "name"))
         return Material(name=name, kind="nodes",
-                        graph=_graph(v["graph"], _at(path, "graph"), images,
+                        graph=_graph(v["graph"], at_key(path, "graph"), images,
                                      f"material {name!r}"))
-    _obj(v, path, ("name",), ("kind", "color", "strength"))
-    m = Material(name=_string(v["name"], _at(path, "name")))
-    m.kind = _string(v.get("kind", m.kind), _at(path, "kind"), MATERIAL_KINDS, "kind")
+    read_fields(v, path, ("name",), ("kind", "color", "strength"))
+    m = Material(name=read_string(v["name"], at_key(path, "name")))
+    m.kind = read_string(v.get("kind", m.kind), at_key(path, "kind"), MATERIAL_KINDS, "kind")
     if "color" in v:
-        m.color = _texture(v["color"], _at(path, "color"), images)
-    m.strength = _number(v.get("strength", m.strength), _at(path, "strength"), ge=0)
+        m.color = _texture(v["color"], at_key(path, "color"), images)
+    m.strength = read_number(v.get("strength", m.strength), at_key(path, "strength"), ge=0)
     return m
 
 
 def _object_material(v, path: str) -> ObjectMaterial:
     m = ObjectMaterial()
-    _obj(v, path, (), ("kind", "ior", "tint", "base_color", "diffuse", "specular", "shininess"))
-    m.kind = _string(v.get("kind", m.kind), _at(path, "kind"), OBJECT_MATERIAL_KINDS, "kind")
-    m.ior = _number(v.get("ior", m.ior), _at(path, "ior"), ge=1 / MAX_IOR, le=MAX_IOR)
-    m.tint = _rgb(v.get("tint", m.tint), _at(path, "tint"))
-    m.base_color = _rgb(v.get("base_color", m.base_color), _at(path, "base_color"))
-    m.diffuse = _number(v.get("diffuse", m.diffuse), _at(path, "diffuse"), ge=0, le=1)
-    m.specular = _number(v.get("specular", m.specular), _at(path, "specular"), ge=0)
-    m.shininess = _number(v.get("shininess", m.shininess), _at(path, "shininess"), gt=0)
+    read_fields(v, path, (), ("kind", "ior", "tint", "base_color", "diffuse", "specular", "shininess"))
+    m.kind = read_string(v.get("kind", m.kind), at_key(path, "kind"), OBJECT_MATERIAL_KINDS, "kind")
+    m.ior = read_number(v.get("ior", m.ior), at_key(path, "ior"), ge=1 / MAX_IOR, le=MAX_IOR)
+    m.tint = read_rgb(v.get("tint", m.tint), at_key(path, "tint"))
+    m.base_color = read_rgb(v.get("base_color", m.base_color), at_key(path, "base_color"))
+    m.diffuse = read_number(v.get("diffuse", m.diffuse), at_key(path, "diffuse"), ge=0, le=1)
+    m.specular = read_number(v.get("specular", m.specular), at_key(path, "specular"), ge=0)
+    m.shininess = read_number(v.get("shininess", m.shininess), at_key(path, "shininess"), gt=0)
     return m
 
 
@@ -116,18 +116,18 @@ def _faces(d: dict, path: str, nverts: int) -> np.ndarray:
     for key in FACE_KEYS:
         if key not in d:
             continue
-        p = _at(path, key)
+        p = at_key(path, key)
         if key == "polygons":
             if not isinstance(d[key], list):
-                _fail(p, f"expected a list (got {_tname(d[key])})")
-            polys = [_array(f, _at(p, i), (None,), integer=True) for i, f in enumerate(d[key])]
+                fail(p, f"expected a list (got {type_name(d[key])})")
+            polys = [read_array(f, at_key(p, i), (None,), integer=True) for i, f in enumerate(d[key])]
             for i, f in enumerate(polys):
                 if len(f) < 3:
-                    _fail(_at(p, i), f"a polygon needs at least 3 vertices (got {len(f)})")
+                    fail(at_key(p, i), f"a polygon needs at least 3 vertices (got {len(f)})")
             flat = np.concatenate(polys) if polys else np.zeros(0, np.int64)
             arr = flat[:, None]
         else:
-            arr = _array(d[key], p, (None, 3 if key == "triangles" else 4), integer=True)
+            arr = read_array(d[key], p, (None, 3 if key == "triangles" else 4), integer=True)
         bad = (arr < 0) | (arr >= nverts)
         if bad.any():
             if key == "polygons":
@@ -139,7 +139,7 @@ def _faces(d: dict, path: str, nverts: int) -> np.ndarray:
             else:
                 i, j = (int(x) for x in np.argwhere(bad)[0])
                 where, val = f"{p}[{i}][{j}]", int(arr[i, j])
-            _fail(where, f"vertex index {val} out of range (the mesh has {nverts} vertices)")
+            fail(where, f"vertex index {val} out of range (the mesh has {nverts} vertices)")
         if key == "triangles":
             parts.append(arr)
         elif key == "quads":
@@ -152,48 +152,48 @@ def _faces(d: dict, path: str, nverts: int) -> np.ndarray:
             j = np.arange(ntri.sum()) - np.repeat(np.cumsum(ntri) - ntri, ntri) + 1
             parts.append(np.stack([flat[first], flat[first + j], flat[first + j + 1]], axis=1))
     if not any(key in d for key in FACE_KEYS):
-        _fail(path, f"missing faces: give one or more of {', '.join(map(repr, FACE_KEYS))}")
+        fail(path, f"missing faces: give one or more of {', '.join(map(repr, FACE_KEYS))}")
     tris = np.concatenate(parts or [np.zeros((0, 3), np.int64)]).astype(np.int64).reshape(-1, 3)
     if len(tris) == 0:
-        _fail(path, "the mesh has no faces")
+        fail(path, "the mesh has no faces")
     return tris
 
 
 def _patch(v, path: str) -> Patch:
-    kind = _kind(v, path, ("nurbs", "mesh"), None)
+    kind = read_kind(v, path, ("nurbs", "mesh"), None)
     if kind == "mesh":
-        _obj(v, path, ("kind", "name", "class_id", "vertices"), FACE_KEYS, " for a mesh patch")
-        verts = _coords(v["vertices"], _at(path, "vertices"), (None, 3))
-        return Patch(name=_string(v["name"], _at(path, "name")),
-                     class_id=_integer(v["class_id"], _at(path, "class_id"), 0, MAX_CLASS_ID),
+        read_fields(v, path, ("kind", "name", "class_id", "vertices"), FACE_KEYS, " for a mesh patch")
+        verts = read_coords(v["vertices"], at_key(path, "vertices"), (None, 3))
+        return Patch(name=read_string(v["name"], at_key(path, "name")),
+                     class_id=read_integer(v["class_id"], at_key(path, "class_id"), 0, MAX_CLASS_ID),
                      vertices=verts, triangles=_faces(v, path, len(verts)))
-    _obj(v, path, ("kind", "name", "class_id", "degree_u", "degree_v", "knots_u", "knots_v",
+    read_fields(v, path, ("kind", "name", "class_id", "degree_u", "degree_v", "knots_u", "knots_v",
                    "points"), ("weights",), " for a nurbs patch")
-    name = _string(v["name"], _at(path, "name"))
-    class_id = _integer(v["class_id"], _at(path, "class_id"), 0, MAX_CLASS_ID)
-    deg = {d: _integer(v[f"degree_{d}"], _at(path, f"degree_{d}"), 1, MAX_DEGREE) for d in "uv"}
-    pts = _coords(v["points"], _at(path, "points"), (None, None, 3))
+    name = read_string(v["name"], at_key(path, "name"))
+    class_id = read_integer(v["class_id"], at_key(path, "class_id"), 0, MAX_CLASS_ID)
+    deg = {d: read_integer(v[f"degree_{d}"], at_key(path, f"degree_{d}"), 1, MAX_DEGREE) for d in "uv"}
+    pts = read_coords(v["points"], at_key(path, "points"), (None, None, 3))
     counts = {"u": pts.shape[0], "v": pts.shape[1]}
     knots = {}
     for d in "uv":
-        p = _at(path, f"knots_{d}")
+        p = at_key(path, f"knots_{d}")
         if counts[d] < deg[d] + 1:
-            _fail(_at(path, "points"), f"{counts[d]} control points along {d}; need at least "
+            fail(at_key(path, "points"), f"{counts[d]} control points along {d}; need at least "
                                        f"degree_{d} + 1 = {deg[d] + 1}")
-        k = _array(v[f"knots_{d}"], p, (None,))
+        k = read_array(v[f"knots_{d}"], p, (None,))
         want = counts[d] + deg[d] + 1
         if len(k) != want:
-            _fail(p, f"expected n_{d} + degree_{d} + 1 = {counts[d]} + {deg[d]} + 1 = {want} "
+            fail(p, f"expected n_{d} + degree_{d} + 1 = {counts[d]} + {deg[d]} + 1 = {want} "
                      f"knots (got {len(k)})")
         dec = np.diff(k) < 0
         if dec.any():
             i = int(np.argmax(dec)) + 1
-            _fail(_at(p, i), f"knots must be non-decreasing "
+            fail(at_key(p, i), f"knots must be non-decreasing "
                              f"(got {float(k[i])!r} after {float(k[i - 1])!r})")
         knots[d] = k
     if "weights" in v:
-        w = _array(v["weights"], _at(path, "weights"), pts.shape[:2])
-        _positive_at(w, _at(path, "weights"), "weight")
+        w = read_array(v["weights"], at_key(path, "weights"), pts.shape[:2])
+        check_positive(w, at_key(path, "weights"), "weight")
     else:
         w = np.ones(pts.shape[:2])
     surf = NurbsSurface(deg["u"], deg["v"], knots["u"], knots["v"], pts, w)
@@ -205,60 +205,60 @@ def _patch(v, path: str) -> Patch:
 
 
 def _mesh(v, path: str, materials: dict) -> Mesh:
-    _obj(v, path, ("name", "vertices", "material"), FACE_KEYS + ("uvs", "smooth"))
-    verts = _coords(v["vertices"], _at(path, "vertices"), (None, 3))
-    mesh = Mesh(name=_string(v["name"], _at(path, "name")), vertices=verts,
+    read_fields(v, path, ("name", "vertices", "material"), FACE_KEYS + ("uvs", "smooth"))
+    verts = read_coords(v["vertices"], at_key(path, "vertices"), (None, 3))
+    mesh = Mesh(name=read_string(v["name"], at_key(path, "name")), vertices=verts,
                 triangles=_faces(v, path, len(verts)),
-                material=_string(v["material"], _at(path, "material")))
+                material=read_string(v["material"], at_key(path, "material")))
     if mesh.material not in materials:
-        _fail(_at(path, "material"), f"material {mesh.material!r} is not defined "
+        fail(at_key(path, "material"), f"material {mesh.material!r} is not defined "
                                      f"(materials: {', '.join(materials) or 'none'})")
     if "uvs" in v:
-        mesh.uvs = _array(v["uvs"], _at(path, "uvs"), (len(verts), 2))
-    mesh.smooth = _boolean(v.get("smooth", False), _at(path, "smooth"))
+        mesh.uvs = read_array(v["uvs"], at_key(path, "uvs"), (len(verts), 2))
+    mesh.smooth = read_boolean(v.get("smooth", False), at_key(path, "smooth"))
     tex = materials[mesh.material].color
     if tex.kind != "constant" and tex.coords == "uv" and mesh.uvs is None:
-        _fail(path, f"material {mesh.material!r} has a uv-mapped texture but the mesh has no 'uvs'")
+        fail(path, f"material {mesh.material!r} has a uv-mapped texture but the mesh has no 'uvs'")
     return mesh
 
 
 def _light(v, path: str) -> Light:
-    kind = _kind(v, path, LIGHT_KINDS, "point")
+    kind = read_kind(v, path, LIGHT_KINDS, "point")
     fields = LIGHT_KINDS[kind]
-    _obj(v, path, ("name",), ("kind",) + fields, f" for light kind {kind!r}")
-    li = Light(name=_string(v["name"], _at(path, "name")), kind=kind)
-    li.color = _rgb(v.get("color", li.color), _at(path, "color"))
-    li.shadows = _boolean(v.get("shadows", li.shadows), _at(path, "shadows"))
+    read_fields(v, path, ("name",), ("kind",) + fields, f" for light kind {kind!r}")
+    li = Light(name=read_string(v["name"], at_key(path, "name")), kind=kind)
+    li.color = read_rgb(v.get("color", li.color), at_key(path, "color"))
+    li.shadows = read_boolean(v.get("shadows", li.shadows), at_key(path, "shadows"))
     if kind == "point":
-        li.position = _point3(v.get("position", li.position), _at(path, "position"))
-        li.power = _number(v.get("power", li.power), _at(path, "power"), ge=0)
+        li.position = read_point3(v.get("position", li.position), at_key(path, "position"))
+        li.power = read_number(v.get("power", li.power), at_key(path, "power"), ge=0)
     else:
-        d = np.array(_vec3(v.get("direction", li.direction), _at(path, "direction")))
+        d = np.array(read_vec3(v.get("direction", li.direction), at_key(path, "direction")))
         n = float(np.linalg.norm(d))
         if not n > 0:
-            _fail(_at(path, "direction"), "must not be the zero vector")
+            fail(at_key(path, "direction"), "must not be the zero vector")
         li.direction = tuple(float(x) for x in (d / n if abs(n - 1) > UNIT_TOL else d))
-        li.strength = _number(v.get("strength", li.strength), _at(path, "strength"), ge=0)
+        li.strength = read_number(v.get("strength", li.strength), at_key(path, "strength"), ge=0)
     return li
 
 
-def _world(v, path: str, images: _Images) -> World:
-    kind = _kind(v, path, WORLD_KINDS, "color")
+def _world(v, path: str, images: SceneImages) -> World:
+    kind = read_kind(v, path, WORLD_KINDS, "color")
     fields = WORLD_KINDS[kind]
-    _obj(v, path, {"image": ("path",), "nodes": ("graph",)}.get(kind, ()), ("kind",) + fields,
+    read_fields(v, path, {"image": ("path",), "nodes": ("graph",)}.get(kind, ()), ("kind",) + fields,
          f" for world kind {kind!r}")
     w = World(kind=kind)
     if "color" in fields:
-        w.color = _rgb(v.get("color", w.color), _at(path, "color"))
+        w.color = read_rgb(v.get("color", w.color), at_key(path, "color"))
     if kind == "gradient":
-        w.zenith = _rgb(v.get("zenith", w.zenith), _at(path, "zenith"))
+        w.zenith = read_rgb(v.get("zenith", w.zenith), at_key(path, "zenith"))
     if kind == "image":
-        w.path = _string(v["path"], _at(path, "path"))
-        w.image = images(w.path, _at(path, "path"))
+        w.path = read_string(v["path"], at_key(path, "path"))
+        w.image = images(w.path, at_key(path, "path"))
     if kind == "nodes":
-        w.graph = _graph(v["graph"], _at(path, "graph"), images, "the world")
-    w.strength = _number(v.get("strength", w.strength), _at(path, "strength"), ge=0)
-    w.ambient = _number(v.get("ambient", w.ambient), _at(path, "ambient"), ge=0)
+        w.graph = _graph(v["graph"], at_key(path, "graph"), images, "the world")
+    w.strength = read_number(v.get("strength", w.strength), at_key(path, "strength"), ge=0)
+    w.ambient = read_number(v.get("ambient", w.ambient), at_key(path, "ambient"), ge=0)
     return w
 
 
@@ -281,91 +281,91 @@ def look_at_matrix(location, look_at, up=(0.0, 0.0, 1.0)) -> np.ndarray:
 
 def _camera(v, path: str) -> Camera:
     if isinstance(v, dict) and "matrix_world" in v:
-        _obj(v, path, ("name", "matrix_world"), CAMERA_FIELDS,
+        read_fields(v, path, ("name", "matrix_world"), CAMERA_FIELDS,
              " (a camera has either matrix_world or location/look_at/up)")
-        mp = _at(path, "matrix_world")
-        m = _array(v["matrix_world"], mp, (4, 4))
+        mp = at_key(path, "matrix_world")
+        m = read_array(v["matrix_world"], mp, (4, 4))
         far = np.abs(m[:3, 3]) > MAX_COORD
         if far.any():
             i = int(np.argmax(far))
-            _fail(f"{mp}[{i}][3]", f"magnitude must be <= {MAX_COORD:g} (got {float(m[i, 3])!r})")
+            fail(f"{mp}[{i}][3]", f"magnitude must be <= {MAX_COORD:g} (got {float(m[i, 3])!r})")
         if m[3].tolist() != [0, 0, 0, 1]:
-            _fail(_at(mp, 3), f"bottom row must be [0, 0, 0, 1] (got {m[3].tolist()})")
+            fail(at_key(mp, 3), f"bottom row must be [0, 0, 0, 1] (got {m[3].tolist()})")
         r = m[:3, :3]
         err = float(np.abs(r.T @ r - np.eye(3)).max())
         if err > RIGID_TOL:
-            _fail(mp, f"not rigid: rotation part is not orthonormal (max |R^T R - I| = {err:.3g} "
+            fail(mp, f"not rigid: rotation part is not orthonormal (max |R^T R - I| = {err:.3g} "
                       f"> {RIGID_TOL}); remove scale/shear")
         if np.linalg.det(r) < 0:
-            _fail(mp, "not rigid: rotation part is a reflection (determinant < 0)")
+            fail(mp, "not rigid: rotation part is a reflection (determinant < 0)")
     else:
-        _obj(v, path, ("name", "location", "look_at"), ("up",) + CAMERA_FIELDS,
+        read_fields(v, path, ("name", "location", "look_at"), ("up",) + CAMERA_FIELDS,
              " (a camera has either matrix_world or location/look_at/up)")
-        loc = _point3(v["location"], _at(path, "location"))
-        tgt = _point3(v["look_at"], _at(path, "look_at"))
-        up = _vec3(v.get("up", (0.0, 0.0, 1.0)), _at(path, "up"))
+        loc = read_point3(v["location"], at_key(path, "location"))
+        tgt = read_point3(v["look_at"], at_key(path, "look_at"))
+        up = read_vec3(v.get("up", (0.0, 0.0, 1.0)), at_key(path, "up"))
         try:
             m = look_at_matrix(loc, tgt, up)
         except ValueError as e:
-            _fail(path, str(e))
-    c = Camera(name=_string(v["name"], _at(path, "name")), matrix_world=m)
-    c.kind = _string(v.get("kind", c.kind), _at(path, "kind"), CAMERA_KINDS, "kind")
-    c.sensor_fit = _string(v.get("sensor_fit", c.sensor_fit), _at(path, "sensor_fit"),
+            fail(path, str(e))
+    c = Camera(name=read_string(v["name"], at_key(path, "name")), matrix_world=m)
+    c.kind = read_string(v.get("kind", c.kind), at_key(path, "kind"), CAMERA_KINDS, "kind")
+    c.sensor_fit = read_string(v.get("sensor_fit", c.sensor_fit), at_key(path, "sensor_fit"),
                            SENSOR_FITS, "sensor_fit")
     for key in ("lens", "sensor_width", "sensor_height", "ortho_scale", "clip_start"):
-        setattr(c, key, _number(v.get(key, getattr(c, key)), _at(path, key), gt=0))
+        setattr(c, key, read_number(v.get(key, getattr(c, key)), at_key(path, key), gt=0))
     for key in ("shift_x", "shift_y"):
-        setattr(c, key, _number(v.get(key, getattr(c, key)), _at(path, key)))
-    c.clip_end = _number(v.get("clip_end", c.clip_end), _at(path, "clip_end"), gt=c.clip_start)
+        setattr(c, key, read_number(v.get(key, getattr(c, key)), at_key(path, key)))
+    c.clip_end = read_number(v.get("clip_end", c.clip_end), at_key(path, "clip_end"), gt=c.clip_start)
     return c
 
 
-def _parse(d, base_dir: str | None, load_images: bool) -> Scene:
+def parse_scene(d, base_dir: str | None, load_images: bool) -> Scene:
     if not isinstance(d, dict):
-        _fail("", f"expected a JSON object (got {_tname(d)})")
+        fail("", f"expected a JSON object (got {type_name(d)})")
     if d.get("format") != FORMAT:
-        _fail("format", f"expected {FORMAT!r} (got {d.get('format')!r}); not a riray scene file")
+        fail("format", f"expected {FORMAT!r} (got {d.get('format')!r}); not a riray scene file")
     if d.get("version") != VERSION or type(d.get("version")) is not int:
-        _fail("version", f"unsupported version {d.get('version')!r} (this riray reads version "
+        fail("version", f"unsupported version {d.get('version')!r} (this riray reads version "
                          f"{VERSION})")
-    _obj(d, "", ("format", "version", "object"), TOP_KEYS)
-    images = _Images(base_dir, load_images)
+    read_fields(d, "", ("format", "version", "object"), TOP_KEYS)
+    images = SceneImages(base_dir, load_images)
 
     render = RenderSettings()
-    r = _obj(d.get("render", {}), "render", (), ("width", "height", "max_events"))
-    render.width = _integer(r.get("width", render.width), "render.width", 1, MAX_IMAGE_SIDE)
-    render.height = _integer(r.get("height", render.height), "render.height", 1, MAX_IMAGE_SIDE)
-    render.max_events = _integer(r.get("max_events", render.max_events), "render.max_events", 1,
+    r = read_fields(d.get("render", {}), "render", (), ("width", "height", "max_events"))
+    render.width = read_integer(r.get("width", render.width), "render.width", 1, MAX_IMAGE_SIDE)
+    render.height = read_integer(r.get("height", render.height), "render.height", 1, MAX_IMAGE_SIDE)
+    render.max_events = read_integer(r.get("max_events", render.max_events), "render.max_events", 1,
                                  MAX_EVENTS)
 
-    mats = [_material(m, _at("materials", i), images)
-            for i, m in enumerate(_list(d.get("materials", []), "materials"))]
-    _unique(mats, "materials", "material")
+    mats = [_material(m, at_key("materials", i), images)
+            for i, m in enumerate(read_list(d.get("materials", []), "materials"))]
+    check_unique(mats, "materials", "material")
     materials = {m.name: m for m in mats}
 
-    o = _obj(d["object"], "object", ("patches",), ("name", "material"))
-    patches = [_patch(p, _at("object.patches", i))
-               for i, p in enumerate(_list(o["patches"], "object.patches"))]
+    o = read_fields(d["object"], "object", ("patches",), ("name", "material"))
+    patches = [_patch(p, at_key("object.patches", i))
+               for i, p in enumerate(read_list(o["patches"], "object.patches"))]
     if not patches:
-        _fail("object.patches", "the specular object needs at least one patch")
-    _check_object_offset(patches)
-    obj = SpecularObject(name=_string(o.get("name", "object"), "object.name"), patches=patches,
+        fail("object.patches", "the specular object needs at least one patch")
+    check_object_offset(patches)
+    obj = SpecularObject(name=read_string(o.get("name", "object"), "object.name"), patches=patches,
                          material=_object_material(o.get("material", {}), "object.material"))
 
-    env = _obj(d.get("environment", {}), "environment", (), ("meshes",))
-    meshes = [_mesh(m, _at("environment.meshes", i), materials)
-              for i, m in enumerate(_list(env.get("meshes", []), "environment.meshes"))]
-    lights = [_light(li, _at("lights", i))
-              for i, li in enumerate(_list(d.get("lights", []), "lights"))]
+    env = read_fields(d.get("environment", {}), "environment", (), ("meshes",))
+    meshes = [_mesh(m, at_key("environment.meshes", i), materials)
+              for i, m in enumerate(read_list(env.get("meshes", []), "environment.meshes"))]
+    lights = [_light(li, at_key("lights", i))
+              for i, li in enumerate(read_list(d.get("lights", []), "lights"))]
     world = _world(d.get("world", {}), "world", images)
-    cameras = [_camera(c, _at("cameras", i))
-               for i, c in enumerate(_list(d.get("cameras", []), "cameras"))]
-    _unique(cameras, "cameras", "camera")
+    cameras = [_camera(c, at_key("cameras", i))
+               for i, c in enumerate(read_list(d.get("cameras", []), "cameras"))]
+    check_unique(cameras, "cameras", "camera")
     return Scene(object=obj, meshes=meshes, materials=materials, lights=lights, world=world,
-                 cameras=cameras, render=render, name=_string(d.get("name", "scene"), "name"))
+                 cameras=cameras, render=render, name=read_string(d.get("name", "scene"), "name"))
 
 
 def scene_from_dict(d: dict, base_dir: str | os.PathLike | None = None) -> Scene:
     """Validate a scene dict (JSON-shaped: dicts, lists, str, int, float, bool) and build the
     Scene; image paths resolve against ``base_dir`` (None: the current directory) and are loaded."""
-    return _parse(d, None if base_dir is None else os.fspath(base_dir), load_images=True)
+    return parse_scene(d, None if base_dir is None else os.fspath(base_dir), load_images=True)

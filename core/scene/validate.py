@@ -1,5 +1,5 @@
 """Checks of JSON scene values: each returns the value as the model stores it or raises
-:class:`SceneError` naming the field's JSON path (``_at``) and the problem; the magnitude limits
+:class:`SceneError` naming the field's JSON path (``at_key``) and the problem; the magnitude limits
 of the format (docs/scene-format.md, "Supported range")."""
 
 from __future__ import annotations
@@ -25,86 +25,86 @@ class SceneError(ValueError):
 
 
 # --------------------------------------------------------------------------- primitive checks
-def _at(path: str, key: str | int) -> str:
+def at_key(path: str, key: str | int) -> str:
     if isinstance(key, int):
         return f"{path}[{key}]"
     return f"{path}.{key}" if path else key
 
 
-def _index(path: str, idx) -> str:
+def at_index(path: str, idx) -> str:
     return path + "".join(f"[{int(i)}]" for i in idx)
 
 
-def _fail(path: str, msg: str):
+def fail(path: str, msg: str):
     raise SceneError(f"{path or 'top level'}: {msg}")
 
 
-def _tname(v) -> str:
+def type_name(v) -> str:
     return {dict: "an object", list: "a list", str: "a string", bool: "a boolean",
             type(None): "null"}.get(type(v), type(v).__name__)
 
 
-def _obj(v, path: str, required=(), optional=(), what: str = "") -> dict:
+def read_fields(v, path: str, required=(), optional=(), what: str = "") -> dict:
     """Check that ``v`` is a JSON object with all ``required`` and no unknown keys."""
     if not isinstance(v, dict):
-        _fail(path, f"expected an object (got {_tname(v)})")
+        fail(path, f"expected an object (got {type_name(v)})")
     allowed = tuple(required) + tuple(optional)
     for k in v:
         if k not in allowed:
             near = difflib.get_close_matches(k, allowed, n=1)
             hint = f"; did you mean {near[0]!r}?" if near else f"; allowed: {', '.join(allowed)}"
-            _fail(path, f"unknown key {k!r}{what}{hint}")
+            fail(path, f"unknown key {k!r}{what}{hint}")
     for k in required:
         if k not in v:
-            _fail(path, f"missing required key {k!r}")
+            fail(path, f"missing required key {k!r}")
     return v
 
 
-def _number(v, path: str, gt=None, ge=None, le=None) -> float:
+def read_number(v, path: str, gt=None, ge=None, le=None) -> float:
     if type(v) not in (int, float):
-        _fail(path, f"expected a number (got {_tname(v)} {v!r})")
+        fail(path, f"expected a number (got {type_name(v)} {v!r})")
     try:
         x = float(v)
     except OverflowError:
-        _fail(path, f"must be finite (got {v!r})")
+        fail(path, f"must be finite (got {v!r})")
     if not np.isfinite(x):
-        _fail(path, f"must be finite (got {x!r})")
+        fail(path, f"must be finite (got {x!r})")
     if abs(x) > MAX_NUMBER:
-        _fail(path, f"magnitude must be <= {MAX_NUMBER:g} (got {x!r})")
+        fail(path, f"magnitude must be <= {MAX_NUMBER:g} (got {x!r})")
     if gt is not None and not x > gt:
-        _fail(path, f"must be > {gt} (got {x!r})")
+        fail(path, f"must be > {gt} (got {x!r})")
     if ge is not None and not x >= ge:
-        _fail(path, f"must be >= {ge} (got {x!r})")
+        fail(path, f"must be >= {ge} (got {x!r})")
     if le is not None and not x <= le:
-        _fail(path, f"must be <= {le} (got {x!r})")
+        fail(path, f"must be <= {le} (got {x!r})")
     return x
 
 
-def _integer(v, path: str, lo=None, hi=None) -> int:
+def read_integer(v, path: str, lo=None, hi=None) -> int:
     if type(v) is not int:
-        _fail(path, f"expected an integer (got {_tname(v)} {v!r})")
+        fail(path, f"expected an integer (got {type_name(v)} {v!r})")
     if lo is not None and v < lo:
-        _fail(path, f"must be >= {lo} (got {v})")
+        fail(path, f"must be >= {lo} (got {v})")
     if hi is not None and v > hi:
-        _fail(path, f"must be <= {hi} (got {v})")
+        fail(path, f"must be <= {hi} (got {v})")
     return v
 
 
-def _string(v, path: str, choices=None, what: str = "value") -> str:
+def read_string(v, path: str, choices=None, what: str = "value") -> str:
     if type(v) is not str or not v:
-        _fail(path, f"expected a non-empty string (got {_tname(v)} {v!r})")
+        fail(path, f"expected a non-empty string (got {type_name(v)} {v!r})")
     if choices is not None and v not in choices:
-        _fail(path, f"unknown {what} {v!r} (expected one of: {', '.join(choices)})")
+        fail(path, f"unknown {what} {v!r} (expected one of: {', '.join(choices)})")
     return v
 
 
-def _boolean(v, path: str) -> bool:
+def read_boolean(v, path: str) -> bool:
     if type(v) is not bool:
-        _fail(path, f"expected true or false (got {_tname(v)} {v!r})")
+        fail(path, f"expected true or false (got {type_name(v)} {v!r})")
     return v
 
 
-def _array(v, path: str, shape: tuple, integer: bool = False,
+def read_array(v, path: str, shape: tuple, integer: bool = False,
            limit: float = MAX_NUMBER) -> np.ndarray:
     """Nested JSON lists -> float64 (or int64) array of ``shape`` (None: any length, the same for
     all siblings); every entry must be a finite number of magnitude <= ``limit`` (an integer
@@ -116,88 +116,88 @@ def _array(v, path: str, shape: tuple, integer: bool = False,
         if d == len(dims):
             if type(x) not in ok:
                 what = "an integer" if integer else "a number"
-                _fail(p, f"expected {what} (got {_tname(x)} {x!r})")
+                fail(p, f"expected {what} (got {type_name(x)} {x!r})")
             return
         if not isinstance(x, (list, tuple)):
-            _fail(p, f"expected a list (got {_tname(x)})")
+            fail(p, f"expected a list (got {type_name(x)})")
         if dims[d] is None:
             dims[d] = len(x)
         elif len(x) != dims[d]:
-            _fail(p, f"expected {dims[d]} entries (got {len(x)})")
+            fail(p, f"expected {dims[d]} entries (got {len(x)})")
         if d == len(dims) - 1 and all(type(e) in ok for e in x):
             return
         for i, e in enumerate(x):
-            walk(e, _at(p, i), d + 1)
+            walk(e, at_key(p, i), d + 1)
 
     walk(v, path, 0)
     dims = [0 if n is None else n for n in dims]
     try:
         arr = np.array(v, dtype=np.int64 if integer else np.float64).reshape(dims)
     except OverflowError:
-        _fail(path, "integer out of range" if integer else "number out of range")
+        fail(path, "integer out of range" if integer else "number out of range")
     if not integer:
         bad = ~np.isfinite(arr)
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
-            _fail(_index(path, idx), f"must be finite (got {float(arr[idx])!r})")
+            fail(at_index(path, idx), f"must be finite (got {float(arr[idx])!r})")
         big = np.abs(arr) > limit
         if big.any():
             idx = tuple(int(i) for i in np.argwhere(big)[0])
-            _fail(_index(path, idx), f"magnitude must be <= {limit:g} (got {float(arr[idx])!r})")
+            fail(at_index(path, idx), f"magnitude must be <= {limit:g} (got {float(arr[idx])!r})")
     return arr
 
 
-def _coords(v, path: str, shape: tuple) -> np.ndarray:
+def read_coords(v, path: str, shape: tuple) -> np.ndarray:
     """Positions in metres: an array whose entries lie within +-MAX_COORD."""
-    return _array(v, path, shape, limit=MAX_COORD)
+    return read_array(v, path, shape, limit=MAX_COORD)
 
 
-def _vec3(v, path: str) -> tuple[float, float, float]:
-    return tuple(float(x) for x in _array(v, path, (3,)))
+def read_vec3(v, path: str) -> tuple[float, float, float]:
+    return tuple(float(x) for x in read_array(v, path, (3,)))
 
 
-def _point3(v, path: str) -> tuple[float, float, float]:
-    return tuple(float(x) for x in _coords(v, path, (3,)))
+def read_point3(v, path: str) -> tuple[float, float, float]:
+    return tuple(float(x) for x in read_coords(v, path, (3,)))
 
 
-def _rgb(v, path: str) -> tuple[float, float, float]:
-    c = _array(v, path, (3,))
+def read_rgb(v, path: str) -> tuple[float, float, float]:
+    c = read_array(v, path, (3,))
     if (c < 0).any():
         i = int(np.argmax(c < 0))
-        _fail(_at(path, i), f"colour components must be >= 0 (got {float(c[i])!r})")
+        fail(at_key(path, i), f"colour components must be >= 0 (got {float(c[i])!r})")
     return tuple(float(x) for x in c)
 
 
-def _positive_at(arr: np.ndarray, path: str, what: str) -> None:
+def check_positive(arr: np.ndarray, path: str, what: str) -> None:
     bad = ~(arr > 0)
     if bad.any():
         idx = tuple(int(i) for i in np.argwhere(bad)[0])
-        _fail(_index(path, idx), f"{what} must be > 0 (got {float(arr[idx])!r})")
+        fail(at_index(path, idx), f"{what} must be > 0 (got {float(arr[idx])!r})")
 
 
-def _kind(d, path: str, kinds, default: str | None) -> str:
+def read_kind(d, path: str, kinds, default: str | None) -> str:
     if not isinstance(d, dict):
-        _fail(path, f"expected an object (got {_tname(d)})")
+        fail(path, f"expected an object (got {type_name(d)})")
     if "kind" not in d and default is None:
-        _fail(path, "missing required key 'kind'")
-    return _string(d.get("kind", default), _at(path, "kind"), tuple(kinds), "kind")
+        fail(path, "missing required key 'kind'")
+    return read_string(d.get("kind", default), at_key(path, "kind"), tuple(kinds), "kind")
 
 
-def _list(v, path: str) -> list:
+def read_list(v, path: str) -> list:
     if not isinstance(v, list):
-        _fail(path, f"expected a list (got {_tname(v)})")
+        fail(path, f"expected a list (got {type_name(v)})")
     return v
 
 
-def _unique(items, path: str, what: str) -> None:
+def check_unique(items, path: str, what: str) -> None:
     seen = set()
     for i, it in enumerate(items):
         if it.name in seen:
-            _fail(_at(_at(path, i), "name"), f"duplicate {what} name {it.name!r}")
+            fail(at_key(at_key(path, i), "name"), f"duplicate {what} name {it.name!r}")
         seen.add(it.name)
 
 
-def _check_object_offset(patches) -> None:
+def check_object_offset(patches) -> None:
     """The object's points lie within MAX_OBJECT_OFFSET box diagonals of the origin."""
     pts = [p.surface.points.reshape(-1, 3) if p.surface is not None else p.vertices
            for p in patches]
@@ -207,6 +207,6 @@ def _check_object_offset(patches) -> None:
     if far > MAX_OBJECT_OFFSET * diag:
         i = next(i for i, q in enumerate(pts) if np.abs(q).max() == far)
         key = "vertices" if patches[i].surface is None else "points"
-        _fail(f"object.patches[{i}].{key}", f"the object lies {far:.3g} m from the origin, more "
+        fail(f"object.patches[{i}].{key}", f"the object lies {far:.3g} m from the origin, more "
               f"than {MAX_OBJECT_OFFSET:g} times its size ({diag:.3g} m): coordinates that far "
               "out cannot be traced to the tracer's tolerance; move the scene to the origin")
