@@ -1,6 +1,6 @@
 """Bakes on a Dask cluster (``riray bake --scheduler``): each bake pass's direction trees in
 shards over ``dask.distributed`` workers, merged by the client into exactly the tree a local
-bake makes (ritree/bake.py: ``bake_shard``, ``_Baker._merge``).
+bake makes (ritree/bake/shards.py: ``bake_shard``, ``ShardedPass.merge``).
 
 A shard is a block of consecutive direction trees (the hemicube slots of consecutive
 viewpoints), baked whole on one worker: every direction level, the midpoint tests and the extra

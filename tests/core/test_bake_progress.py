@@ -27,12 +27,12 @@ def work_clock(monkeypatch):
     monkeypatch.setattr(bake_mod, "time",
                         types.SimpleNamespace(perf_counter=lambda: float(clock["now"])))
     monkeypatch.setattr(bake_mod, "TRACE_CHUNK", 256)
-    call = bake_mod._Tracer.__call__
+    call = bake_mod.Tracer.__call__
 
     def traced(self, *args):
         clock["kind"] = getattr(self, "kind", "level")
         return call(self, *args)
-    monkeypatch.setattr(bake_mod._Tracer, "__call__", traced)
+    monkeypatch.setattr(bake_mod.Tracer, "__call__", traced)
     return clock
 
 

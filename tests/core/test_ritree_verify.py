@@ -300,7 +300,7 @@ def finest_bake(k, spy=None):
                         finest_min_traced=k)
     cam = scene.camera("close")
     region = region_for_cameras(st, params, [cam], SIZE, SIZE)
-    orig = bake_mod._Baker._traced_cells
+    orig = bake_mod.Baker._traced_cells
 
     def traced_cells(self, tree, o, d, tmax):
         cells = orig(self, tree, o, d, tmax)
@@ -308,7 +308,7 @@ def finest_bake(k, spy=None):
             spy(self, st, (o, d, tmax), cells)
         return cells
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(bake_mod._Baker, "_traced_cells", traced_cells)
+        mp.setattr(bake_mod.Baker, "_traced_cells", traced_cells)
         return bake(st, params, region, workers=1)
 
 
@@ -389,14 +389,14 @@ def test_finest_pass_over_several_levels_leaves_no_ray_outside():
                         viewpoint_tolerance_deg=45.0, finest_min_traced=1)
     region = region_for_cameras(st, params, [scene.camera("close")], 40, 40)
     split_levels = []
-    orig = bake_mod._Baker._traced_cells
+    orig = bake_mod.Baker._traced_cells
 
     def traced_cells(self, tree, o, d, tmax):
         cells = orig(self, tree, o, d, tmax)
         split_levels.extend(np.unique(self.vpf.level[cells]))
         return cells
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(bake_mod._Baker, "_traced_cells", traced_cells)
+        mp.setattr(bake_mod.Baker, "_traced_cells", traced_cells)
         tree = bake(st, params, region, workers=1)
     assert len(split_levels) >= 3                      # cells of three levels split at once
     o, d, tmax = region.rays

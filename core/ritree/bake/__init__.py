@@ -32,9 +32,6 @@ from .slots import SLOT_MIN_DEPTH, rect_sees_boxes, rects_see_object
 from .state import TRACE_CHUNK, BakeConfig
 from .tracing import BakeCancelled, Tracer
 
-# Under their former names too (tests patch their methods).
-_Baker, _Tracer = Baker, Tracer
-
 __all__ = ["BakeCancelled", "FINEST_TOLERANCE_DEG", "REFINE_ANGLE_DEG", "SLOT_MIN_DEPTH",
            "TRACE_CHUNK", "Baker", "ShardedPass", "Tracer", "bake", "bake_shard", "finest_rule",
            "rect_sees_boxes", "rects_see_object", "refine_rule"]
