@@ -243,6 +243,15 @@ class RITree:
 # (camera and full trees of glass_sphere), so a small crafted file cannot claim gigabytes.
 MAX_EXPANSION = 32
 MIN_EXPANSION_BYTES = 64 << 20
+# Loaded and queried, a sample costs about this many bytes of memory (its decoded fields, its
+# row of the query's sample table, the locators: 473 measured on glass_sphere's camera tree),
+# and a file may ask for at most LOADED_PER_FILE_BYTE times its bytes that way (or
+# MIN_LOADED_BYTES): glass_sphere's camera and full trees ask for 60-145 times theirs; samples
+# that miss the object compress to almost nothing, so without this a 1 MB file could ask for
+# gigabytes (with it, a file needs 4 MB to ask for 2 GiB).
+LOADED_SAMPLE_BYTES = 512
+LOADED_PER_FILE_BYTE = 512
+MIN_LOADED_BYTES = 256 << 20
 _IDS = ("<i4", "<i8")
 _INTS = ("|i1", "<i2", "<i4", "<i8")
 
@@ -274,7 +283,8 @@ def check_file(header: dict, table: dict, file_bytes: int | None = None) -> None
     layout-5 tree's: the header fields the reader uses (type and range), exactly the tree's
     arrays, each of its dtype and of the shape the tree's counts give, the counts agreeing
     (a forest of quadtrees, samples and hits) and, with ``file_bytes``, the arrays claiming
-    at most MAX_EXPANSION times the file's bytes."""
+    at most MAX_EXPANSION times the file's bytes and its samples needing at most
+    LOADED_PER_FILE_BYTE times them once loaded."""
     def bad(msg):
         return TreeCacheError(f"RI-Tree file is inconsistent ({msg}); re-bake the tree")
 
@@ -322,6 +332,11 @@ def check_file(header: dict, table: dict, file_bytes: int | None = None) -> None
     if file_bytes is not None and claimed > max(MAX_EXPANSION * file_bytes, MIN_EXPANSION_BYTES):
         raise bad(f"its arrays claim {claimed} bytes, more than {MAX_EXPANSION} times the "
                   f"file's {file_bytes}")
+    loaded = claimed + LOADED_SAMPLE_BYTES * max(c["S"], 0)
+    if file_bytes is not None and loaded > max(LOADED_PER_FILE_BYTE * file_bytes,
+                                               MIN_LOADED_BYTES):
+        raise bad(f"its {c['S']} samples would need about {loaded >> 20} MiB loaded, more than "
+                  f"{LOADED_PER_FILE_BYTE} times the file's {file_bytes} bytes")
 
 
 def _check_values(a: dict, params: dict) -> None:

@@ -22,7 +22,6 @@ import numpy as np
 import pytest
 
 from riray.cli import main
-from riray.trace.scene_tracer import SceneTracer
 from riray.ritree import cache, filters
 from riray.ritree import tree as ritree
 from riray.ritree.bake import bake
@@ -33,6 +32,7 @@ from riray.ritree.tree import BakeParams, check_file
 from riray.scene.io import look_at_matrix, save_scene
 from riray.scene.model import Camera
 from riray.scene.samples import build
+from riray.trace.scene_tracer import SceneTracer
 
 PARAMS = BakeParams(viewpoint_depth=1, viewpoint_refine=0, direction_depth=2)
 
@@ -285,6 +285,25 @@ def test_consistent_but_inflated_tree_is_refused_by_its_claim(baked):
         check_file(header, big, info["file_bytes"])  # ... that this file cannot hold
     with pytest.raises(TreeCacheError, match="not quadtrees"):
         check_file(header, dict(big, **{"dir.leaf_corner": (np.dtype("<i4"), (k - 1, 4))}))
+
+
+def test_samples_that_would_need_too_much_memory_are_refused(baked):
+    """Samples that all miss compress to almost nothing: a consistent table whose arrays stay
+    within the claim limit but whose samples would need gigabytes once loaded is refused."""
+    _, _, good = baked
+    info = cache.describe(good)
+    header = info["header"]
+    table = {a["name"]: (np.dtype(a["dtype"]), tuple(a["shape"])) for a in info["arrays"]}
+    n = 1 << 22                                      # 4 M samples: 2 GiB once loaded
+    wide = dict(table, **{"s.patch": (np.dtype("<i2"), (n,)),
+                          "s.null_bits": (np.dtype("|u1"), ((n + 7) // 8,)),
+                          "s.tree_code": (np.dtype("|u1"), (n,))})
+    claimed = sum(int(np.prod(shape)) * dt.itemsize for dt, shape in wide.values())
+    assert claimed < ritree.MIN_EXPANSION_BYTES and table["s.patch"][1][0] < n  # within claims
+    check_file(header, wide)                          # a consistent tree ...
+    with pytest.raises(TreeCacheError, match="would need about .* MiB loaded"):
+        check_file(header, wide, info["file_bytes"])  # ... too big to load from this file
+    check_file(header, table, info["file_bytes"])     # the real one loads
 
 
 def test_stream_longer_than_its_array_is_stopped(baked, tmp_path):
