@@ -1,4 +1,4 @@
-"""Fixtures for the add-on tests: the bpy module is imported once per session, after the
+"""Fixtures for the add-on tests: the bpy module is imported once per test run, after the
 extension zip was built (Blender's builder), validated and pointed at a temporary
 BLENDER_USER_RESOURCES; the zip is then installed into bpy and enabled.
 

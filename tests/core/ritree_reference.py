@@ -1,9 +1,9 @@
 """A plain per-ray reference of the RI-Tree query rules (``riray.ritree.query.TreeQuery``).
 
 Helper module for tests/core/test_ritree_reference.py (not collected: no ``test_`` prefix). It
-restates the rules of TreeQuery as it stood at commit 3bb980a (HEAD of ``core/ritree/query.py``
-and ``core/ritree/interp.py`` before the staged rewrite of issue #10) as a Python loop over rays,
-with plain scalar / tiny-array code, so a fast pipeline can be checked against it ray by ray.
+restates the rules of TreeQuery as it stood at commit 3bb980a (``core/ritree/query.py`` and
+``core/ritree/interp.py`` before the staged rewrite, now ``core/ritree/query/``) as a Python loop
+over rays, with plain scalar / tiny-array code, so a fast pipeline can be checked against it ray by ray.
 
 What it takes from core, and why that is not a rule:
 - ``entry_points``, ``Forest.locate``, ``dir_to_cube``, ``SLOT``: where a ray enters the padded
@@ -25,7 +25,7 @@ Rules (policy "ri"; paper sections 4.1-4.3, 5.1-5.4), per ray:
 2.  Two-patch rule: > 2 classes among the 16 samples -> TRACED (more_than_two_classes). One
     class: that class (the miss class -1 -> MISS). Two classes: the exact first hit against the
     distinct patches of the 16 samples gives the class; no hit -> MISS.
-2b. Tolerance (issue #11, ``max_error_deg`` set): a ray of a class (>= 0) whose four leaves'
+2b. Tolerance (``max_error_deg`` set): a ray of a class (>= 0) whose four leaves'
     or viewpoint cell's baked error (``dir_err``, ``vp_err``) exceeds it, or was not measured,
     is TRACED (tolerance).
 2c. Misses under a tolerance: a ray rule 2 answers MISS is traced (unsampled_hit) when its
@@ -65,8 +65,8 @@ Rules (policy "ri"; paper sections 4.1-4.3, 5.1-5.4), per ray:
     no extra samples); success -> NULL_S with the interpolated hit point and normal.
 11. Hidden: an interpolated (or null) first hit at t >= tmax along the query ray -> MISS.
     Normals are turned to face the query ray.
-12. Mirror normal (``mirror_rays`` "reflect" or "newton", after the rules of the paper, commit of issue #11's
-    stop 15): on a mirror, an interpolated ray (rules 5-9) whose usable samples - corners and
+12. Mirror normal (``mirror_rays`` "reflect" or "newton", after the rules of the paper, since
+    commit 65bd543): on a mirror, an interpolated ray (rules 5-9) whose usable samples - corners and
     the four leaves' extra samples of its class, not null - all left the object at their
     first hit leaves from its interpolated hit point along the query direction mirrored about
     its interpolated normal.

@@ -198,7 +198,7 @@ def _row(scene, sweep, speedup, mean, p99, angle=None, max_error=None):
 
 
 def test_dominance_of_the_threshold_curve():
-    """Issue #11's Pareto judgement: a threshold point is dominated by a tolerance point at
+    """The bench's Pareto judgement: a threshold point is dominated by a tolerance point at
     least as fast with mean and p99 no higher (ties count); a faster point with a higher p99
     does not; "reflect" points count only for "any"; a threshold point that traces every ray
     (no error reported) is dominated by one whose errors are at the tracer's own 1e-9 deg."""

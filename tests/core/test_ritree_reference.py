@@ -1,4 +1,4 @@
-"""TreeQuery against a plain per-ray reference of its rules (issue #10, "The answers stay the
+"""TreeQuery against a plain per-ray reference of its rules ("The answers stay the
 paper's"): tests/core/ritree_reference.py restates the query rules of commit 3bb980a as a loop
 over rays; here both answer the camera rays of small real trees, baked for sample scenes, saved
 and loaded back as a render does.

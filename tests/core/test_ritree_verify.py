@@ -1,4 +1,4 @@
-"""The bake's measured errors (issue #11): per direction node and per viewpoint cell, against
+"""The bake's measured errors: per direction node and per viewpoint cell, against
 independent truths.
 
 - A planar mirror: reflection is linear in the direction and independent of the ray's origin,
