@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import signal
 import sys
 import tempfile
@@ -190,19 +189,9 @@ def _check_npy_header(path):
     """ValueError unless the .npy file's header says N x 6 numeric and the file holds that much
     data: checked before any data is read (a truncated file or a header claiming more rows than
     the file holds is an error, not an allocation)."""
-    fmt = np.lib.format
+    from .imageio import npy_header
     with open_regular(path) as f:
-        if f.read(4) == b"PK\x03\x04":
-            raise ValueError(f"{path}: expected a .npy file holding one array (got an .npz "
-                             "archive)")
-        f.seek(0)
-        try:
-            version = fmt.read_magic(f)
-            read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
-            shape, _, dtype = read(f)
-        except (ValueError, EOFError) as e:
-            raise ValueError(f"{path}: not a .npy array file ({e})") from None
-        data = os.fstat(f.fileno()).st_size - f.tell()
+        shape, dtype, data = npy_header(f, path)
     if dtype.kind not in "fiu":
         raise ValueError(f"{path}: expected a numeric N x 6 array (got dtype {dtype})")
     if len(shape) != 2 or shape[1] != 6:

@@ -258,10 +258,13 @@ def write_float_image(path: str | os.PathLike, rgb: np.ndarray) -> None:
     atomic_write(path, lambda f: np.save(f, arr.astype(np.float32), allow_pickle=False))
 
 
-def _npy_header(f: BinaryIO, path: str) -> tuple[tuple, np.dtype]:
-    """(shape, dtype) of the .npy file ``f``, read from its header alone; ImageError unless it
-    is a numeric (H, W[, 1|3|4]) image of 1..MAX_IMAGE_SIDE pixels a side whose data ``f``
-    holds."""
+def npy_header(f: BinaryIO, path: str) -> tuple[tuple, np.dtype, int]:
+    """(shape, dtype, bytes of data after the header) of the .npy file ``f`` (at its start),
+    read from its header alone; ImageError (a ValueError) naming ``path`` unless it is one."""
+    if f.read(4) == b"PK\x03\x04":
+        raise ImageError(f"{path}: expected a .npy file holding one array (got an .npz "
+                         "archive)")
+    f.seek(0)
     fmt = np.lib.format
     try:
         version = fmt.read_magic(f)
@@ -269,6 +272,14 @@ def _npy_header(f: BinaryIO, path: str) -> tuple[tuple, np.dtype]:
         shape, _, dtype = read(f)
     except (ValueError, EOFError) as e:
         raise ImageError(f"{path}: not a readable .npy array ({e})") from None
+    return shape, dtype, os.fstat(f.fileno()).st_size - f.tell()
+
+
+def _image_npy_header(f: BinaryIO, path: str) -> tuple[tuple, np.dtype]:
+    """(shape, dtype) of the .npy file ``f``, read from its header alone; ImageError unless it
+    is a numeric (H, W[, 1|3|4]) image of 1..MAX_IMAGE_SIDE pixels a side whose data ``f``
+    holds."""
+    shape, dtype, held = npy_header(f, path)
     if dtype.kind not in "fiu" or not (len(shape) == 2 or (len(shape) == 3
                                                            and shape[2] in (1, 3, 4))):
         raise ImageError(f"{path}: expected a numeric (H, W[, 1|3|4]) array "
@@ -276,7 +287,6 @@ def _npy_header(f: BinaryIO, path: str) -> tuple[tuple, np.dtype]:
     if not 1 <= min(shape[:2]) <= max(shape[:2]) <= MAX_IMAGE_SIDE:
         raise ImageError(f"{path}: {shape[0]} x {shape[1]} pixels: an image needs 1.."
                          f"{MAX_IMAGE_SIDE} on a side")
-    held = os.fstat(f.fileno()).st_size - f.tell()
     if held < int(np.prod(shape)) * dtype.itemsize:
         raise ImageError(f"{path}: truncated: the header says {shape} {dtype}, the file holds "
                          f"{held} bytes of data")
@@ -285,13 +295,13 @@ def _npy_header(f: BinaryIO, path: str) -> tuple[tuple, np.dtype]:
 
 def read_float_image(path: str | os.PathLike) -> np.ndarray:
     """Read a .npy image as float64 (H, W, 3): (H, W) grey is replicated, a 4th channel dropped.
-    The header is checked (:func:`_npy_header`) before any pixel is read."""
+    The header is checked (:func:`_image_npy_header`) before any pixel is read."""
     try:
         f = open_regular(path, MAX_IMAGE_BYTES)
     except ValueError as e:
         raise ImageError(str(e)) from None
     with f:
-        _npy_header(f, os.fspath(path))
+        _image_npy_header(f, os.fspath(path))
         f.seek(0)
         try:
             arr = np.lib.format.read_array(f, allow_pickle=False)

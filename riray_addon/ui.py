@@ -196,36 +196,36 @@ class _InSidebar(_BakeSubPanel):
     bl_parent_id = "RIRAY_PT_bake_view3d"
 
 
-class RIRAY_PT_bake_advanced(_InProperties, bpy.types.Panel):
+class _Advanced:
+    """The Advanced sub-panel's content (the tree's settings), in either editor."""
     bl_label = "Advanced"
+
+    def draw(self, context):
+        draw_advanced(_split(self.layout), context.object.riray)
+
+
+class _RenderRules:
+    """The Render-time Rules sub-panel's content, in either editor."""
+    bl_label = "Render-time Rules"
+
+    def draw(self, context):
+        draw_render_rules(_split(self.layout), context.object.riray)
+
+
+class RIRAY_PT_bake_advanced(_Advanced, _InProperties, bpy.types.Panel):
     bl_idname = "RIRAY_PT_bake_advanced"
 
-    def draw(self, context):
-        draw_advanced(_split(self.layout), context.object.riray)
 
-
-class RIRAY_PT_bake_advanced_view3d(_InSidebar, bpy.types.Panel):
-    bl_label = "Advanced"
+class RIRAY_PT_bake_advanced_view3d(_Advanced, _InSidebar, bpy.types.Panel):
     bl_idname = "RIRAY_PT_bake_advanced_view3d"
 
-    def draw(self, context):
-        draw_advanced(_split(self.layout), context.object.riray)
 
-
-class RIRAY_PT_render_rules(_InProperties, bpy.types.Panel):
-    bl_label = "Render-time Rules"
+class RIRAY_PT_render_rules(_RenderRules, _InProperties, bpy.types.Panel):
     bl_idname = "RIRAY_PT_render_rules"
 
-    def draw(self, context):
-        draw_render_rules(_split(self.layout), context.object.riray)
 
-
-class RIRAY_PT_render_rules_view3d(_InSidebar, bpy.types.Panel):
-    bl_label = "Render-time Rules"
+class RIRAY_PT_render_rules_view3d(_RenderRules, _InSidebar, bpy.types.Panel):
     bl_idname = "RIRAY_PT_render_rules_view3d"
-
-    def draw(self, context):
-        draw_render_rules(_split(self.layout), context.object.riray)
 
 
 def _spline_number(groups, item) -> int:
