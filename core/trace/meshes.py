@@ -263,11 +263,6 @@ class MeshSet:
         """Closest hit with t in [tmin (default 0), tmax (default inf)] of each ray."""
         return self.record(self.closest(origins, dirs, tmin, tmax))
 
-    def closest_t(self, origins, dirs, tmin=None, tmax=None):
-        """(t (N,), tri (N,)) of the closest hits only (inf / -1 on a miss)."""
-        h = self.closest(origins, dirs, tmin, tmax)
-        return h.t, h.tri
-
     def closest(self, origins, dirs, tmin=None, tmax=None) -> RayHits:
         """Closest hit with t in [tmin (default 0), tmax (default inf)] of each ray: triangle,
         t and barycentrics, Moller-Trumbore's on that triangle."""
