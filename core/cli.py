@@ -51,16 +51,19 @@ def _query_options(args):
                         null_interp=args.null_rays == "interpolate",
                         max_error_deg=None if args.max_error < 0 else args.max_error,
                         path_identity=args.path_identity,
+                        many_classes=args.many_classes.replace("-", "_"),
                         mirror_rays=args.mirror_rays).validate()
 
 
 def _bake_params(args):
+    """BakeParams of --quality's preset, the preset's fields given as flags taking over."""
     from .ritree.tree import BakeParams
-    return BakeParams(
-        viewpoint_depth=args.viewpoint_depth, direction_depth=args.direction_depth,
-        viewpoint_refine=args.viewpoint_refine,
-        min_direction_depth=args.min_direction_depth, tolerance_deg=args.tolerance,
-        tolerance_dist=args.tolerance_dist, viewpoint_tolerance_deg=args.viewpoint_tolerance,
+    given = {"viewpoint_depth": args.viewpoint_depth, "direction_depth": args.direction_depth,
+             "viewpoint_refine": args.viewpoint_refine, "tolerance_deg": args.tolerance}
+    return BakeParams.preset(
+        args.quality, **{k: v for k, v in given.items() if v is not None},
+        min_direction_depth=args.min_direction_depth, tolerance_dist=args.tolerance_dist,
+        viewpoint_tolerance_deg=args.viewpoint_tolerance,
         finest_min_traced=args.finest_min_traced, search_steps=args.search_steps).validate()
 
 
@@ -292,8 +295,8 @@ def cmd_demo(args):
     st = SceneTracer(scene)
     args.cameras = args.camera
     print(f"demo: {args.scene} / camera {args.camera} at {args.size}x{args.size}: "
-          f"baking the RI-Tree (viewpoint depth {args.viewpoint_depth}, direction depth "
-          f"{args.direction_depth}) for this camera")
+          f"baking the RI-Tree (viewpoint depth {params.viewpoint_depth}, direction depth "
+          f"{params.direction_depth}) for this camera")
     tree = _bake(scene, args, params, out / "tree.rit", st)
     res = render_tree(st, tree, Shot(args.camera), options=options, reference=True,
                       workers=args.workers, progress=_progress("interpolated + exact render"))

@@ -37,6 +37,10 @@ def tree_options(p):
     p.add_argument("--path-identity", action="store_true",
                    help="trace a ray whose usable samples differ in ray-tree hash (event "
                    "sequence) or whose leaves / viewpoint cell the bake saw change path")
+    p.add_argument("--many-classes", choices=("first-hit", "trace"), default="first-hit",
+                   help="a ray whose 16 samples hold more than two classes takes the class of "
+                   "its exact first hit (first-hit, the default; a miss is then answered "
+                   "exactly) or is traced (trace, the paper's two-patch condition)")
     p.add_argument("--null-rays", choices=("interpolate", "trace"), default="trace",
                    help="a ray whose interpolants are all null (trapped) is traced (trace, the "
                    "default and the paper) or answered null (interpolate: faster, but a "
@@ -51,19 +55,34 @@ def tree_options(p):
 
 
 def bake_options(p):
+    from .ritree.params import QUALITY_PRESETS
     from .ritree.tree import BakeParams
     d = BakeParams()
-    p.add_argument("--viewpoint-depth", type=int, default=d.viewpoint_depth,
-                   help=f"uniform viewpoint-tree depth (default {d.viewpoint_depth})")
-    p.add_argument("--direction-depth", type=int, default=d.direction_depth,
-                   help=f"maximum direction-tree depth (default {d.direction_depth})")
-    p.add_argument("--viewpoint-refine", type=int, default=d.viewpoint_refine,
+
+    def preset(field):
+        """The help's default of a field the quality preset sets: each preset's value."""
+        return ", ".join(f"{q} {v[field]:g}" for q, v in QUALITY_PRESETS.items())
+
+    p.add_argument("--quality", choices=tuple(QUALITY_PRESETS), default="default",
+                   help="bake quality preset, the add-on's Quality: the depths, viewpoint "
+                   "refinement and tolerance the flags below do not give (default: default, "
+                   "the paper's depths; fast: about a third of the bake time; draft: quicker "
+                   "still, more rays traced at render time)")
+    p.add_argument("--viewpoint-depth", type=int, default=None,
+                   help="uniform viewpoint-tree depth (default: the preset's, "
+                   f"{preset('viewpoint_depth')})")
+    p.add_argument("--direction-depth", type=int, default=None,
+                   help="maximum direction-tree depth (default: the preset's, "
+                   f"{preset('direction_depth')})")
+    p.add_argument("--viewpoint-refine", type=int, default=None,
                    help="extra viewpoint levels where the cameras' rays lack interpolants "
-                   f"(default {d.viewpoint_refine}; camera-region bakes only)")
+                   "(camera-region bakes only; default: the preset's, "
+                   f"{preset('viewpoint_refine')})")
     p.add_argument("--min-direction-depth", type=int, default=d.min_direction_depth,
                    help=f"direction trees split at least this deep (default {d.min_direction_depth})")
-    p.add_argument("--tolerance", type=float, default=d.tolerance_deg, metavar="DEG",
-                   help="bake angular tolerance (degrees)")
+    p.add_argument("--tolerance", type=float, default=None, metavar="DEG",
+                   help="bake angular tolerance (degrees; default: the preset's, "
+                   f"{preset('tolerance_deg')})")
     p.add_argument("--tolerance-dist", type=float, default=d.tolerance_dist, metavar="REL",
                    help="bake distance tolerance, relative to the object's box diagonal")
     p.add_argument("--viewpoint-tolerance", type=float, default=d.viewpoint_tolerance_deg,

@@ -35,7 +35,7 @@ from ..core.ritree.region import region_for_cameras
 
 BACKEND = "ritree"
 CALIBRATION_RAYS = 2048         # rays traced to measure this object's cost per ray (estimate)
-# Estimate model for camera bakes, fit to the Draft / Default / Paper bakes of glass_sphere and
+# Estimate model for camera bakes, fit to the Draft / Fast / Default bakes of glass_sphere and
 # vase_mirror (docs/blender.md, "How good the estimate is"): the direction trees are the
 # cameras' trees at the first viewpoint level plus this share of those the finest level adds,
 # each with a typical sample count; a sample costs a few traced rays (extra samples where two

@@ -8,7 +8,9 @@ view_layer.riray which extra passes the engine writes
 
 Bake parameters carry the names of ``core.ritree.tree.BakeParams`` where one exists, so
 ``bake_params(obj)`` maps straight onto it; the rest (thresholds, extrapolation, cameras) are
-render-time or viewpoint-selection settings the RI-Tree module reads from the same dict.
+render-time or viewpoint-selection settings the RI-Tree module reads from the same dict. The
+defaults and quality presets are core's (BakeParams, QUALITY_PRESETS, QueryOptions), so a
+bake and a render at the defaults match the ``riray`` command line's.
 """
 
 
@@ -18,24 +20,23 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
                        IntProperty, PointerProperty, StringProperty)
 
-from ..core.ritree.query import DEFAULT_MAX_ERROR_DEG
+from ..core.ritree.params import QUALITY_PRESETS, BakeParams
+from ..core.ritree.query import DEFAULT_MAX_ERROR_DEG, QueryOptions
+from ..core.scene.camera import Shot
+from ..core.scene.model import RenderSettings
 from . import compat
+
+BAKE = BakeParams()             # core's defaults of the settings below
+QUERY = QueryOptions()
 
 
 def _poll_target(_self, obj) -> bool:
     return obj.type in {"SURFACE", "MESH", "CURVE", "META"}
 
 
-# Bake quality presets (camera bakes). DEFAULT, the properties' defaults, bakes a sample scene
-# for its three cameras in about a minute on two cores; PAPER is the paper's tree.
-QUALITY = {
-    "DRAFT": {"viewpoint_depth": 3, "direction_depth": 4, "viewpoint_refine": 1,
-              "tolerance_deg": 1.0},
-    "DEFAULT": {"viewpoint_depth": 4, "direction_depth": 5, "viewpoint_refine": 2,
-                "tolerance_deg": 0.5},
-    "PAPER": {"viewpoint_depth": 5, "direction_depth": 6, "viewpoint_refine": 2,
-              "tolerance_deg": 0.5},
-}
+# Bake quality presets by Quality item: core's (riray bake --quality). DEFAULT is the
+# properties' defaults.
+QUALITY = {name.upper(): values for name, values in QUALITY_PRESETS.items()}
 _applying = [False]
 
 
@@ -82,38 +83,44 @@ class RIRAY_PG_spline_group(bpy.types.PropertyGroup):
 class RIRAY_PG_object(bpy.types.PropertyGroup):
     quality: EnumProperty(
         name="Quality",
+        # The numbers are what a .blend stores: files saved when 1 was Default at depths 4 / 5
+        # and 2 was Paper at 5 / 6 open with the same depths, as Fast and Default.
         items=[("DRAFT", "Draft", "Coarsest tree: the quickest bake and smallest cache; more "
-                                  "rays are traced exactly at render time"),
-               ("DEFAULT", "Default", "About a minute for a sample scene's three cameras on "
-                                      "two cores"),
-               ("PAPER", "Paper", "The finest tree: several times Default's bake time and "
-                                  "cache size, the fewest rays traced at render time"),
-               ("CUSTOM", "Custom", "The depths and tolerance as set under Advanced")],
+                                  "rays are traced exactly at render time", 0),
+               ("FAST", "Fast", "About a minute for a sample scene's three cameras on two "
+                                "cores: about a third of Default's bake time, under half its "
+                                "cache, more rays traced at render time", 1),
+               ("DEFAULT", "Default", "The paper's tree, the command line's default: the "
+                                      "fewest rays traced at render time", 2),
+               ("CUSTOM", "Custom", "The depths and tolerance as set under Advanced", 3)],
         default="DEFAULT", update=_apply_quality,
         description="How fine a tree to bake. Finer trees take longer and use more disk and "
                     "memory, and leave fewer rays to trace exactly at render time")
     # ---- tree parameters (names of core BakeParams)
-    viewpoint_depth: IntProperty(name="Viewpoint depth", default=4, min=1, max=9,
+    viewpoint_depth: IntProperty(name="Viewpoint depth", default=BAKE.viewpoint_depth, min=1, max=9,
                                  update=_mark_custom,
                                  description="How finely the camera positions around the object "
                                              "are divided. One more level: about 4 times the "
                                              "bake time and cache size, fewer rays traced at "
                                              "render time")
-    direction_depth: IntProperty(name="Direction depth", default=5, min=1, max=10,
-                                 update=_mark_custom,
+    direction_depth: IntProperty(name="Direction depth", default=BAKE.direction_depth, min=1,
+                                 max=10, update=_mark_custom,
                                  description="How finely the directions seen from each camera "
                                              "position may be divided. One more level: up to 4 "
                                              "times the bake time and cache size where the "
                                              "object needs it, smaller interpolation errors")
-    min_direction_depth: IntProperty(name="Min direction depth", default=1, min=0, max=10,
+    min_direction_depth: IntProperty(name="Min direction depth",
+                                     default=BAKE.min_direction_depth, min=0, max=10,
                                      description="Directions are divided at least this finely "
                                                  "everywhere, even where the object looks "
                                                  "simple. Higher: a safer tree, more bake time "
                                                  "and cache")
-    tolerance_deg: FloatProperty(name="Angle tolerance (degrees)", default=0.5, min=1e-4,
-                                 max=45.0, precision=3, update=_mark_custom, options={"HIDDEN"},
+    tolerance_deg: FloatProperty(name="Angle tolerance (degrees)", default=BAKE.tolerance_deg,
+                                 min=1e-4, max=45.0, precision=3, update=_mark_custom,
+                                 options={"HIDDEN"},
                                  description="Saved value of Angle tolerance, in degrees")
-    tolerance_dist: FloatProperty(name="Distance tolerance (fraction)", default=0.002,
+    tolerance_dist: FloatProperty(name="Distance tolerance (fraction)",
+                                  default=BAKE.tolerance_dist,
                                   min=1e-6, max=0.5, precision=4, options={"HIDDEN"},
                                   description="Saved value of Distance tolerance, a fraction of "
                                               "the object's bounding-box diagonal")
@@ -127,20 +134,20 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
         description="... and leave from within this distance of the exact ones, in percent "
                     "of the object's bounding-box diagonal. Smaller: more accurate, a longer "
                     "bake and a bigger cache")
-    search_steps: IntProperty(name="Search steps", default=4, min=0, max=30,
+    search_steps: IntProperty(name="Search steps", default=BAKE.search_steps, min=0, max=30,
                               description="Where two surfaces of the object meet inside a "
                                           "region, the bake searches for the edge with this "
                                           "many halvings. More: sharper edges between them, "
                                           "slightly more bake time")
-    viewpoint_refine: IntProperty(name="Viewpoint refine", default=2, min=0, max=4,
-                                  update=_mark_custom,
+    viewpoint_refine: IntProperty(name="Viewpoint refine", default=BAKE.viewpoint_refine,
+                                  min=0, max=4, update=_mark_custom,
                                   description="Extra levels of camera positions, only where the "
                                               "scene cameras' rays would otherwise be traced "
                                               "or come out too inaccurate. Each level: more "
                                               "bake time and cache, fewer rays traced at "
                                               "render time (camera bakes only)")
-    finest_min_traced: IntProperty(name="Finest level where traced", default=0, min=0,
-                                   max=1 << 30,
+    finest_min_traced: IntProperty(name="Finest level where traced",
+                                   default=BAKE.finest_min_traced, min=0, max=1 << 30,
                                    description="The finest level of camera positions goes only "
                                                "where at least this many camera rays would be "
                                                "traced (0: wherever the other levels would). "
@@ -153,8 +160,9 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                                           "paper's method)"),
                ("RAYTREE", "Ray tree", "Bala et al.'s older rule: interpolate only where the "
                                        "nearby samples bounce off the same surfaces")],
-        default="RI", description="Which rule decides whether a ray is interpolated or traced")
-    use_angle_threshold: BoolProperty(name="Angle threshold", default=False,
+        default=QUERY.policy.upper(),
+        description="Which rule decides whether a ray is interpolated or traced")
+    use_angle_threshold: BoolProperty(name="Angle threshold", default=QUERY.angle_deg is not None,
                                       description="Trace a ray whose nearby samples leave the "
                                                   "object further apart than the angle below. "
                                                   "Max error is the better rule; this one is "
@@ -165,7 +173,8 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                      description="Largest angle between the nearby samples' rays for which a "
                                  "ray is interpolated. Smaller: more accurate, more rays "
                                  "traced, slower renders")
-    use_distance_threshold: BoolProperty(name="Distance threshold", default=False,
+    use_distance_threshold: BoolProperty(name="Distance threshold",
+                                         default=QUERY.distance is not None,
                                          description="Trace a ray whose nearby samples leave the "
                                                      "object further apart than the distance "
                                                      "below")
@@ -178,7 +187,8 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
         description="Largest distance between where the nearby samples leave the object, in "
                     "percent of its bounding-box diagonal. Smaller: more accurate, more rays "
                     "traced, slower renders")
-    use_extrapolation: BoolProperty(name="Extrapolation", default=False,
+    use_extrapolation: BoolProperty(name="Extrapolation",
+                                    default=QUERY.extrapolation is not None,
                                     description="Also interpolate rays slightly outside their "
                                                 "nearby samples (fewer rays traced, less "
                                                 "accurate at edges)")
@@ -186,12 +196,12 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                                  subtype="FACTOR",
                                  description="How far outside the nearby samples a ray may "
                                              "lie, as a share of their spacing")
-    use_null_interp: BoolProperty(name="Interpolate null rays", default=False,
+    use_null_interp: BoolProperty(name="Interpolate null rays", default=QUERY.null_interp,
                                   description="Answer a ray as trapped inside the object when "
                                               "all its nearby samples are, instead of tracing "
                                               "it: faster, but can miss a way out no sample "
                                               "shows")
-    use_max_error: BoolProperty(name="Max error", default=True,
+    use_max_error: BoolProperty(name="Max error", default=QUERY.max_error_deg is not None,
                                 description="Interpolate a ray only where the bake measured "
                                             "errors within the angle below around it; trace it "
                                             "elsewhere. A tree baked without the scene cameras "
@@ -204,17 +214,19 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                          description="Largest error the bake measured that an interpolated "
                                      "ray may have. Smaller: more accurate, more rays traced, "
                                      "slower renders")
-    use_mirror_normal: BoolProperty(name="Reflect about normal", default=True,
+    use_mirror_normal: BoolProperty(name="Reflect about normal",
+                                    default=QUERY.mirror_rays != "interpolate",
                                     description="Mirrors: reflect the view ray about the "
                                                 "interpolated surface normal instead of "
                                                 "interpolating the reflected ray. Sharper "
                                                 "reflections at about the same cost")
-    use_mirror_newton: BoolProperty(name="Exact mirror hits", default=True,
+    use_mirror_newton: BoolProperty(name="Exact mirror hits",
+                                    default=QUERY.mirror_rays == "newton",
                                     description="Mirrors: find the exact point and normal on "
                                                 "the surface before reflecting. Exact "
                                                 "reflections, more time per ray; fewer rays "
                                                 "are traced")
-    use_path_identity: BoolProperty(name="Path identity", default=False,
+    use_path_identity: BoolProperty(name="Path identity", default=QUERY.path_identity,
                                     description="Trace a ray whose nearby samples take "
                                                 "different paths through the object (hit "
                                                 "different surfaces in a different order). "
@@ -282,7 +294,7 @@ class RIRAY_PG_scene(bpy.types.PropertyGroup):
     allow_tracing: BoolProperty(name="Trace without tree", default=True,
                                 description="Trace the object exactly when it has no RI-Tree or "
                                             "the tree is stale (else the render fails)")
-    samples: IntProperty(name="Samples", default=1, min=1, max=4096, soft_max=64,
+    samples: IntProperty(name="Samples", default=Shot.samples, min=1, max=4096, soft_max=64,
                          description="Camera rays per pixel: 1 is the pixel centre; more are "
                                      "stratified in the pixel and filtered (Blackman-Harris, "
                                      "1.5 px) for anti-aliasing")
@@ -290,7 +302,7 @@ class RIRAY_PG_scene(bpy.types.PropertyGroup):
                                   description="Worker processes for RI-Tree Preview renders "
                                               "(0: automatic - every core on Linux, one "
                                               "elsewhere, where forking Blender is unsafe)")
-    max_events: IntProperty(name="Max events", default=8, min=1, max=64,
+    max_events: IntProperty(name="Max events", default=RenderSettings.max_events, min=1, max=64,
                             description="Reflections/refractions followed before a ray becomes "
                                         "the null ray")
 

@@ -13,8 +13,8 @@ Options:
   --object NAME         the specular object (default: scene.riray.target, set by build_blend)
   --camera NAME         render from this camera (default: the scene camera)
   --bake auto|always|never   bake when the tree is missing or stale (auto, the default),
-                        always, or never; tree options: --quality draft|default|paper (the
-                        add-on's presets), then --viewpoint-depth, --direction-depth,
+                        always, or never; tree options: --quality draft|fast|default (the
+                        add-on's presets, riray bake's), then --viewpoint-depth, --direction-depth,
                         --tolerance (degrees) override the preset's values
   --save                save the .blend after baking (records the bake in the file)
   --zip PATH            extension zip to install when the add-on is not enabled (default:
@@ -75,7 +75,7 @@ def parse(argv):
     ap.add_argument("--object", default="")
     ap.add_argument("--camera", default="", help="camera object to render from")
     ap.add_argument("--bake", default="auto", choices=["auto", "always", "never"])
-    ap.add_argument("--quality", default="", choices=["draft", "default", "paper"])
+    ap.add_argument("--quality", default="", choices=["draft", "fast", "default"])
     ap.add_argument("--viewpoint-depth", type=int, default=0)
     ap.add_argument("--direction-depth", type=int, default=0)
     ap.add_argument("--tolerance", type=float, default=0.0)

@@ -1,9 +1,10 @@
-"""Bake settings (``BakeParams``) and the constants of the tree's array layout: its version,
-the extra samples' position codes and the bits of the bake's per-cell flags."""
+"""Bake settings (``BakeParams``), their quality presets (``QUALITY_PRESETS``) and the
+constants of the tree's array layout: its version, the extra samples' position codes and the
+bits of the bake's per-cell flags."""
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
@@ -14,8 +15,10 @@ import numpy as np
 # the outputs of samples that miss the object), small ranges in small dtypes. 4: each hit
 # sample's normalized first-hit patch parameters (s.uv_q), the seeds of the mirror query's
 # Newton step. 5: hit points and normals that follow from a sample's patch and parameters are
-# not stored (s.geom; derive.py).
-TREE_LAYOUT = 5
+# not stored (s.geom; derive.py). 6: each hit sample's path seeds, the patches and normalized
+# parameters of its events after the first (s.ev_patch, s.ev_uv_q), from which the query
+# solves a ray exactly along a sample's path.
+TREE_LAYOUT = 6
 # Extra samples' cell-local positions are stored as uint16 multiples of 1 / EX_POS_SCALE where
 # that is exact (the bake's edge search lands on binary fractions: search_steps <= 15), else
 # as float32.
@@ -70,3 +73,29 @@ class BakeParams:
             if not ok:
                 raise ValueError(f"bake parameters: {msg} (got {asdict(self)})")
         return self
+
+    @classmethod
+    def preset(cls, quality: str, **overrides) -> "BakeParams":
+        """The parameters of the quality preset ``quality`` (QUALITY_PRESETS), then
+        ``overrides`` (BakeParams fields) over them."""
+        if quality not in QUALITY_PRESETS:
+            raise ValueError(f"bake parameters: unknown quality {quality!r} (one of "
+                             f"{', '.join(QUALITY_PRESETS)})")
+        return cls(**{**QUALITY_PRESETS[quality], **overrides})
+
+
+# The BakeParams fields a quality preset sets; the others keep their defaults.
+PRESET_FIELDS = ("viewpoint_depth", "direction_depth", "viewpoint_refine", "tolerance_deg")
+_DEFAULTS = {f.name: f.default for f in fields(BakeParams)}
+# Bake quality presets, coarsest first: name -> the values of PRESET_FIELDS, the same in the CLI
+# (riray bake --quality) and the add-on (its Quality menu). "default" is BakeParams' defaults,
+# the paper's depths; "fast", for interactive use, bakes two sample scenes' three cameras in
+# about a third of default's time, into under half its cache (docs/blender.md); "draft" is the
+# quickest bake and smallest cache, with the most rays traced at render time.
+QUALITY_PRESETS = {
+    "draft": {"viewpoint_depth": 3, "direction_depth": 4, "viewpoint_refine": 1,
+              "tolerance_deg": 1.0},
+    "fast": {"viewpoint_depth": 4, "direction_depth": 5, "viewpoint_refine": 2,
+             "tolerance_deg": 0.5},
+    "default": {k: _DEFAULTS[k] for k in PRESET_FIELDS},
+}

@@ -8,19 +8,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..trace.objectfn import one_reflection_hash
+from ..trace.objectfn import RECORDED_EVENTS, one_reflection_hash
 from .answers import COL
 from .codec import (decode_params, decode_points, decode_unit_vectors, encode_params, encode_points,
                     encode_unit_vectors)
 from .derive import kept_rows, valid_codes
 
-SAMPLE_FIELDS = ("out_o", "out_d", "point", "normal", "patch", "null", "tree", "uv")
+SAMPLE_FIELDS = ("out_o", "out_d", "point", "normal", "patch", "null", "tree", "uv", "ev_patch",
+                 "ev_uv")
 
 
 @dataclass
 class Samples:
     """Ray samples (S of them); float32 geometry, int32 patch ids; ``uv`` (S, 2) float32 the
-    first hit's normalized patch parameters (ObjectRays.uv)."""
+    first hit's normalized patch parameters (ObjectRays.uv); ``ev_patch`` (S, K) int32 and
+    ``ev_uv`` (S, K, 2) float32 the patch (-1: none) and normalized parameters of the hits of
+    events 1..K after the first (trace.objectfn.EventRecord, K = RECORDED_EVENTS)."""
 
     out_o: np.ndarray
     out_d: np.ndarray
@@ -30,10 +33,17 @@ class Samples:
     null: np.ndarray
     tree: np.ndarray
     uv: np.ndarray | None = None      # None: zeros (hand-made samples without patch parameters)
+    ev_patch: np.ndarray | None = None  # None: no recorded events (-1)
+    ev_uv: np.ndarray | None = None     # None: zeros
 
     def __post_init__(self):
+        n = len(self.patch)
         if self.uv is None:
-            self.uv = np.zeros((len(self.patch), 2), np.float32)
+            self.uv = np.zeros((n, 2), np.float32)
+        if self.ev_patch is None:
+            self.ev_patch = np.full((n, RECORDED_EVENTS), -1, np.int32)
+        if self.ev_uv is None:
+            self.ev_uv = np.zeros((n, RECORDED_EVENTS, 2), np.float32)
 
     @classmethod
     def empty(cls) -> "Samples":
@@ -42,13 +52,15 @@ class Samples:
                    np.zeros(0, bool), np.zeros(0, np.uint32), np.zeros((0, 2), np.float32))
 
     @classmethod
-    def from_rays(cls, res) -> "Samples":
-        """From an ``ObjectRays`` result (trace.objectfn)."""
+    def from_rays(cls, res, record=None) -> "Samples":
+        """From an ``ObjectRays`` result (trace.objectfn) and its EventRecord (None: none)."""
         return cls(res.out_o.astype(np.float32) if hasattr(res, "out_o") else
                    res.out_origin.astype(np.float32), res.out_dir.astype(np.float32),
                    res.point.astype(np.float32), res.normal.astype(np.float32),
                    res.patch.astype(np.int32), res.null.astype(bool), res.tree.astype(np.uint32),
-                   res.uv.astype(np.float32))
+                   res.uv.astype(np.float32),
+                   None if record is None else record.patch.astype(np.int32),
+                   None if record is None else record.uv.astype(np.float32))
 
     def __len__(self) -> int:
         return len(self.patch)
@@ -67,6 +79,9 @@ class Samples:
                              point_q=encode_points(self.point, lo, hi)[0],
                              normal_q=encode_unit_vectors(self.normal),
                              uv_q=encode_params(self.uv),
+                             ev_patch=self.ev_patch.astype(np.int32),
+                             ev_uv_q=encode_params(self.ev_uv.reshape(-1, 2)).reshape(
+                                 len(self), 2 * RECORDED_EVENTS),
                              patch=self.patch.astype(np.int16 if self.patch.max(initial=0) < 32767
                                                      else np.int32),
                              null=self.null, tree=self.tree, lo=np.asarray(lo), hi=np.asarray(hi))
@@ -91,6 +106,8 @@ class PackedSamples:
     point_q: np.ndarray
     normal_q: np.ndarray
     uv_q: np.ndarray        # (S, 2) uint16 normalized patch parameter codes
+    ev_patch: np.ndarray    # (S, K) int32 the patches of events 1..K (-1: none)
+    ev_uv_q: np.ndarray     # (S, 2K) uint16 their normalized patch parameter codes
     patch: np.ndarray       # (S,) int16/int32
     null: np.ndarray        # (S,) bool
     tree: np.ndarray        # (S,) uint32 ray-tree hash
@@ -99,10 +116,13 @@ class PackedSamples:
     geom: np.ndarray | None = None  # (S,) uint8 derive.GEOM_* (None: all stored)
     pending: bool = False   # the derived hits' point and normal codes are not computed yet
 
-    FIELDS = ("out_o_q", "out_d_q", "point_q", "normal_q", "uv_q", "patch", "null", "tree")
-    CODES = FIELDS[:5]          # the output codes (stored for hits only)
+    FIELDS = ("out_o_q", "out_d_q", "point_q", "normal_q", "uv_q", "ev_patch", "ev_uv_q",
+              "patch", "null", "tree")
+    CODES = FIELDS[:7]          # the output codes (stored for hits only)
     CODE_FORMS = {"out_o_q": (np.uint16, 3), "out_d_q": (np.int16, 2), "point_q": (np.uint16, 3),
-                  "normal_q": (np.int16, 2), "uv_q": (np.uint16, 2)}   # dtype, columns
+                  "normal_q": (np.int16, 2), "uv_q": (np.uint16, 2),
+                  "ev_patch": (np.int32, RECORDED_EVENTS),
+                  "ev_uv_q": (np.uint16, 2 * RECORDED_EVENTS)}   # dtype, columns
     STORED = ("patch", "null_bits", "tree_table", "tree_code", "geom") + CODES
 
     def __post_init__(self):
@@ -139,6 +159,10 @@ class PackedSamples:
     @property
     def uv(self) -> np.ndarray:
         return decode_params(self.uv_q)
+
+    @property
+    def ev_uv(self) -> np.ndarray:
+        return decode_params(self.ev_uv_q.reshape(-1, 2)).reshape(len(self), RECORDED_EVENTS, 2)
 
     def stored(self) -> dict[str, np.ndarray]:
         """The cache file's sample arrays: the codes of the samples that hit the object only
@@ -183,7 +207,7 @@ class PackedSamples:
         codes = {}
         for k in cls.CODES:
             q = np.asarray(a[k])
-            codes[k] = np.zeros((n,) + q.shape[1:], q.dtype)
+            codes[k] = np.full((n,) + q.shape[1:], -1 if k == "ev_patch" else 0, q.dtype)
             codes[k][kept.get(k, hit)] = q
         null = np.unpackbits(np.asarray(a["null_bits"]), count=n, bitorder="little").view(bool)
         geom = np.zeros(n, np.uint8)
@@ -223,6 +247,8 @@ class SampleTable:
     tree: np.ndarray        # (S,) uint32 ray-tree hash
     once: np.ndarray        # (S,) bool: a hit whose ray-tree hash is one reflection off its
                             # patch (a mirror ray that left at its first hit)
+    ev_patch: np.ndarray    # (S, K) int32 the patches of events 1..K (-1: none)
+    ev_uv: np.ndarray       # (S, K, 2) float32 their normalized patch parameters
 
     @classmethod
     def of(cls, samples, class_of) -> "SampleTable":
@@ -236,4 +262,5 @@ class SampleTable:
         tree = np.asarray(samples.tree, np.uint32)
         once = (klass >= 0) & ~null & (tree == one_reflection_hash(patch))
         return cls(vals=vals, cls=klass.astype(np.int32), null=null, patch=patch, tree=tree,
-                   once=once)
+                   once=once, ev_patch=np.asarray(samples.ev_patch, np.int32),
+                   ev_uv=np.asarray(samples.ev_uv, np.float32))

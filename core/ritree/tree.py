@@ -23,6 +23,7 @@ from .derive import fill
 from .params import BOUNDARY, EX_POS_SCALE, PATH_CHANGE, TREE_LAYOUT, UNVERIFIED, BakeParams
 from .quadtree import CORNERS, DenseLocator, Forest
 from .samples import SAMPLE_FIELDS, PackedSamples, Samples, SampleTable
+from ..trace.objectfn import RECORDED_EVENTS
 
 # Re-exported: the tree's parts are imported from here.
 __all__ = ["BOUNDARY", "EX_POS_SCALE", "PATH_CHANGE", "SAMPLE_FIELDS", "TREE_LAYOUT",
@@ -210,7 +211,7 @@ class RITree:
     @classmethod
     def from_parts(cls, header: dict, arrays: dict) -> "RITree":
         """The tree of a cache file's header and arrays; TreeCacheError (saying to re-bake)
-        unless they are a layout-5 tree: header fields, dtypes and shapes (``check_file``),
+        unless they are a layout-6 tree: header fields, dtypes and shapes (``check_file``),
         then every index against what it indexes, before any array is used."""
         a = {k: np.asarray(v) for k, v in arrays.items()}
         check_file(header, {k: (v.dtype, v.shape) for k, v in a.items()})
@@ -257,7 +258,7 @@ _INTS = ("|i1", "<i2", "<i4", "<i8")
 
 
 def _file_table(c: dict) -> dict:
-    """Array name -> (allowed dtype strings, shape) of a layout-5 tree with counts ``c``."""
+    """Array name -> (allowed dtype strings, shape) of a layout-6 tree with counts ``c``."""
     V, K, Kv, S, H, E = c["V"], c["K"], c["Kv"], c["S"], c["H"], c["E"]
     return {
         "box_lo": (("<f8",), (3,)), "box_hi": (("<f8",), (3,)), "class_of": (_INTS, (c["P"],)),
@@ -274,13 +275,15 @@ def _file_table(c: dict) -> dict:
         "s.tree_table": (("<u4",), (c["U"],)), "s.tree_code": (("|u1", "<u2", "<u4"), (S,)),
         "s.geom": (("|u1",), (H,)), "s.out_d_q": (("<i2",), (H, 2)), "s.uv_q": (("<u2",), (H, 2)),
         "s.point_q": (("<u2",), (c["Hp"], 3)), "s.normal_q": (("<i2",), (c["Hp"], 2)),
-        "s.out_o_q": (("<u2",), (c["Ho"], 3))}
+        "s.out_o_q": (("<u2",), (c["Ho"], 3)),
+        "s.ev_patch": (("<i4",), (H, RECORDED_EVENTS)),
+        "s.ev_uv_q": (("<u2",), (H, 2 * RECORDED_EVENTS))}
 
 
 def check_file(header: dict, table: dict, file_bytes: int | None = None) -> None:
     """TreeCacheError (saying to re-bake) unless ``header`` and ``table`` ({name: (dtype,
     shape)}, as cache.load_tree's ``check`` hears them before reading any array) are a
-    layout-5 tree's: the header fields the reader uses (type and range), exactly the tree's
+    layout-6 tree's: the header fields the reader uses (type and range), exactly the tree's
     arrays, each of its dtype and of the shape the tree's counts give, the counts agreeing
     (a forest of quadtrees, samples and hits) and, with ``file_bytes``, the arrays claiming
     at most MAX_EXPANSION times the file's bytes and its samples needing at most
@@ -340,7 +343,7 @@ def check_file(header: dict, table: dict, file_bytes: int | None = None) -> None
 
 
 def _check_values(a: dict, params: dict) -> None:
-    """ValueError unless every id in ``a`` (a layout-5 tree's arrays, ``check_file``'s
+    """ValueError unless every id in ``a`` (a layout-6 tree's arrays, ``check_file``'s
     shapes) lies within what it indexes and the geometry is finite."""
     S, K, V = len(a["s.patch"]), len(a["dir.child"]), len(a["vp_pos"])
 
@@ -353,6 +356,7 @@ def _check_values(a: dict, params: dict) -> None:
     within("dir.leaf_corner", -1, S)
     within("vp_face", 0, 6)
     within("s.patch", -1, len(a["class_of"]))
+    within("s.ev_patch", -1, len(a["class_of"]))
     within("class_of", 0, 1 << 31)
     within("ex_node", 0, K)
     within("ex_ids", 0, S)

@@ -28,6 +28,10 @@ SECONDARY_T_MIN_REL = 1e-7
 TREE_HASH_SEED = 2166136261
 TREE_HASH_PRIME = 16777619
 REFLECT, REFRACT = 1, 2
+# Events after the first whose hits a path record keeps (EventRecord): the RI-Tree's samples
+# carry them as seeds for solving a query ray exactly along a sample's path (4 events: a ray
+# through both walls of a hollow glass object).
+RECORDED_EVENTS = 3
 
 
 def tree_hash_step(h, patch, kind):
@@ -102,6 +106,20 @@ def fresnel_dielectric(cos_i, eta):
     return np.where(sin_t2 >= 1.0, 1.0, 0.5 * (rs * rs + rp * rp))
 
 
+@dataclass
+class EventRecord:
+    """The hits of events 1..RECORDED_EVENTS (after the first) of N traced rays: the patch
+    (-1: no such event) and the normalized patch parameters (N, K, 2) in [0, 1]^2."""
+
+    patch: np.ndarray
+    uv: np.ndarray
+
+    @classmethod
+    def empty(cls, n: int) -> "EventRecord":
+        return cls(patch=np.full((n, RECORDED_EVENTS), -1, np.int32),
+                   uv=np.zeros((n, RECORDED_EVENTS, 2)))
+
+
 def _first_hits(tracer, o, d, tmax, known):
     """tracer.intersect(o, d, tmax=tmax), reusing the hits ``known`` = (rows, PatchHit)."""
     if known is None or len(known[0]) == 0:
@@ -120,13 +138,15 @@ def _first_hits(tracer, o, d, tmax, known):
 
 
 def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
-                 max_events: int = 8, tmax=None, inside=None, first=None) -> ObjectRays:
+                 max_events: int = 8, tmax=None, inside=None, first=None,
+                 record: EventRecord | None = None) -> ObjectRays:
     """Apply f to N rays (origins (N,3), unit dirs (N,3)); ``tmax`` limits the first segment
     (something in the environment in front of the object). ``inside`` (N,) bool marks rays that
     start inside a refractive object (default: all start outside). ``first``: optional
     (rows, PatchHit), the first hits of rays ``rows`` already found by ``tracer.intersect``
     with the same tmax and every patch (the RI-Tree query's first-hit stage); the other rays'
-    first hits are found here."""
+    first hits are found here. ``record``: an EventRecord.empty(N) to fill with the hits of
+    the events after the first."""
     o = np.array(origins, dtype=np.float64)
     d = np.array(dirs, dtype=np.float64)
     n = len(o)
@@ -172,6 +192,9 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
         keep = ~esc
         act, cur_o, cur_d, inside, tree = act[keep], cur_o[keep], cur_d[keep], inside[keep], tree[keep]
         pts, patch = nxt.point[keep], nxt.patch[keep]
+        if record is not None and event < RECORDED_EVENTS:
+            record.patch[act, event] = patch
+            record.uv[act, event] = tracer.normalized_uv(patch, nxt.u[keep], nxt.v[keep])
         nrm = nxt.normal[keep]
         f = np.einsum("ij,ij->i", nrm, cur_d) > 0.0
         nrm[f] *= -1.0

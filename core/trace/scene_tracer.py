@@ -34,10 +34,13 @@ class SceneTracer:
         self.box_lo = self.tracer.lo - 1e-6 * self.tracer.diag
         self.box_hi = self.tracer.hi + 1e-6 * self.tracer.diag
 
-    def object_function(self, origins, dirs, tmax=None, first=None) -> ObjectRays:
-        """f of the rays (trace_object; ``first``: first hits already found, see there)."""
+    def object_function(self, origins, dirs, tmax=None, first=None,
+                        record=None) -> ObjectRays:
+        """f of the rays (trace_object; ``first``: first hits already found, ``record``: an
+        EventRecord to fill, see there)."""
         return trace_object(self.tracer, self.scene.object.material, origins, dirs,
-                            self.scene.render.max_events, tmax=tmax, first=first)
+                            self.scene.render.max_events, tmax=tmax, first=first,
+                            record=record)
 
     def box_entry(self, origins, dirs):
         """Distance at which each ray enters the object's bounding box (inf if it misses)."""

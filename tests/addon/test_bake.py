@@ -234,12 +234,12 @@ def test_quality_presets(bl, tmp_path):
     assert p.quality == "DEFAULT" and p.bake_for_cameras
     assert {k: getattr(p, k) for k in presets["DEFAULT"]} == presets["DEFAULT"]
     cost = [presets[q]["viewpoint_depth"] + presets[q]["direction_depth"]
-            for q in ("DRAFT", "DEFAULT", "PAPER")]
+            for q in ("DRAFT", "FAST", "DEFAULT")]
     assert cost == sorted(cost) and len(set(cost)) == 3
-    p.quality = "PAPER"
-    assert (p.viewpoint_depth, p.direction_depth, p.quality) == (5, 6, "PAPER")
+    p.quality = "FAST"
+    assert (p.viewpoint_depth, p.direction_depth, p.quality) == (4, 5, "FAST")
     p.tolerance_deg = 0.25
-    assert p.quality == "CUSTOM" and p.viewpoint_depth == 5
+    assert p.quality == "CUSTOM" and p.viewpoint_depth == 4
     assert bpy.ops.riray.bake(object=obj.name, quality="DRAFT", direction_depth=2) == \
         {"FINISHED"}
     assert (p.viewpoint_depth, p.direction_depth, p.viewpoint_refine) == (3, 2, 1)
@@ -276,7 +276,7 @@ def test_refused_setting_is_not_kept(bl, tmp_path):
     assert "SurfSphere: Viewpoint depth 9 + Viewpoint refine 4 is more than 10" in msg
     assert "pad" not in msg and "viewpoint_tolerance_deg" not in msg and "{" not in msg
     p = obj.riray
-    assert (p.viewpoint_depth, p.viewpoint_refine, p.quality) == (4, 2, "DEFAULT")
+    assert (p.viewpoint_depth, p.viewpoint_refine, p.quality) == (5, 2, "DEFAULT")
     assert bpy.ops.riray.bake(object=obj.name, direction_depth=1, viewpoint_refine=0,
                               quality="DRAFT") == {"FINISHED"}
     assert (p.viewpoint_depth, p.direction_depth, p.viewpoint_refine) == (3, 1, 0)

@@ -105,3 +105,52 @@ def test_custom_property_settings_adopted(bl, tmp_path):
     assert (p.policy, p.tolerance_deg, p.viewpoint_depth) == ("RAYTREE", 2.0, 3)
     assert [g.group for g in p.spline_groups] == [4]
     assert bl.properties.adopt_custom_properties() == 0          # nothing left to adopt
+
+
+def test_defaults_are_cores(bl):
+    """A new object bakes and renders as `riray bake` / `riray render` do without options
+    (tests/core/test_cli.py: BakeParams' and QueryOptions' defaults): every bake setting the
+    add-on shares with BakeParams, the render-time rules (as QueryOptions), samples and max
+    events default to core's values; the Quality menu holds core's presets, its default
+    Default being BakeParams' defaults."""
+    import importlib
+    from dataclasses import asdict
+    bpy = bl.bpy
+    core = bl.addon.__name__.rpartition(".")[0] + ".core"
+    params = importlib.import_module(core + ".ritree.params")
+    query = importlib.import_module(core + ".ritree.query")
+    model = importlib.import_module(core + ".scene.model")
+    camera = importlib.import_module(core + ".scene.camera")
+    bpy.ops.wm.read_homefile(use_empty=True)
+    bpy.ops.surface.primitive_nurbs_surface_sphere_add(radius=0.5)
+    obj = bpy.context.active_object
+    got = bl.properties.bake_params(obj)
+    want = asdict(params.BakeParams())
+    assert set(want) - set(got) == {"viewpoint_tolerance_deg", "pad"}     # not in the add-on
+    _same({k: got[k] for k in want if k in got}, {k: v for k, v in want.items() if k in got})
+    _same(asdict(query.QueryOptions(**got["query"])), asdict(query.QueryOptions()))
+    assert bl.properties.QUALITY == {k.upper(): v for k, v in params.QUALITY_PRESETS.items()}
+    assert {k: got[k] for k in params.QUALITY_PRESETS["default"]} == \
+        params.QUALITY_PRESETS["default"]
+    assert got["quality"] == "DEFAULT" and got["bake_for_cameras"]
+    scene = bpy.context.scene.riray
+    assert (scene.samples, scene.max_events) == \
+        (camera.Shot().samples, model.RenderSettings().max_events)
+
+
+def test_quality_numbers_of_older_files(bl):
+    """The .blend stores the Quality item's number: a file saved when 1 was Default at depths
+    4 / 5 and 2 was Paper at 5 / 6 opens as Fast and Default, whose depths those are."""
+    bpy = bl.bpy
+    bpy.ops.wm.read_homefile(use_empty=True)
+    bpy.ops.surface.primitive_nurbs_surface_sphere_add(radius=0.5)
+    p = bpy.context.active_object.riray
+    p.search_steps = 5                          # the object now has stored settings
+    stored = bl.compat.registered_storage(bpy.context.active_object, "riray")
+    for number, item, depths in ((0, "DRAFT", (3, 4)), (1, "FAST", (4, 5)),
+                                 (2, "DEFAULT", (5, 6)), (3, "CUSTOM", None)):
+        stored["quality"] = number
+        assert p.quality == item
+        if depths:
+            preset = bl.properties.QUALITY[item]
+            assert (preset["viewpoint_depth"], preset["direction_depth"]) == depths

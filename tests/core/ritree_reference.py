@@ -22,7 +22,9 @@ Rules (policy "ri"; paper sections 4.1-4.3, 5.1-5.4), per ray:
 1.  Rays not entering the padded box before ``tmax`` are MISS; rays starting inside it, and
     rays whose viewpoint cell, hemicube slot, direction leaves, baked (u, v) rectangles or
     corner samples are missing, are OUTSIDE (traced).
-2.  Two-patch rule: > 2 classes among the 16 samples -> TRACED (more_than_two_classes). One
+2.  Two-patch rule: > 2 classes among the 16 samples -> TRACED (more_than_two_classes) with
+    ``many_classes="trace"``; with "first_hit", the exact first hit against all patches gives
+    the class (no hit -> MISS; a class none of the 16 samples has -> TRACED, unsampled_hit). One
     class: that class (the miss class -1 -> MISS). Two classes: the exact first hit against the
     distinct patches of the 16 samples gives the class; no hit -> MISS.
 2b. Tolerance (``max_error_deg`` set): a ray of a class (>= 0) whose four leaves'
@@ -314,7 +316,7 @@ def candidates(data, cell):
     flat = [s for row in cell.ids for s in row]
     classes = sorted({int(data.cls[s]) for s in flat})
     if len(classes) > 2:
-        return "traced", None
+        return "traced", classes
     if len(classes) == 1:
         return "one", classes[0]
     return "two", sorted({int(data.patch[s]) for s in flat if data.patch[s] >= 0})
@@ -736,8 +738,14 @@ class Reference:
         if opt.policy == "raytree":
             return answer_raytree(self.data, cell, o, d, tmax)
         pc = self.query_class(i)
-        if pc is None:
+        many = pc is None
+        if many and opt.many_classes == "trace":
             return Answer(TRACED, WHY_CLASSES)
+        if many:
+            row = self.any_row[i]
+            pc = int(self.any_first.cls[row]) if self.any_first.hit[row] else -1
+            if pc not in self.rule2[i][1] and pc != -1:
+                return Answer(TRACED, WHY_UNSAMPLED, info={"unsampled": True})
         if pc == -1:
             info = {"pc": -1, "two_class": self.rule2[i][0] == "two"}
             tol = getattr(opt, "max_error_deg", None)
@@ -745,7 +753,7 @@ class Reference:
                 return Answer(TRACED, WHY_UNSAMPLED, info={**info, "unsampled": True})
             return Answer(MISS, info=info)
         first = self.any_first.take([self.any_row[i]]) \
-            if self.rule2[i][0] == "two" else None
+            if self.rule2[i][0] in ("two", "traced") else None
         rec = answer_ri(self.data, cell, pc, o, d, tmax, opt, first)
         rec.info["two_class"] = self.rule2[i][0] == "two"
         return rec

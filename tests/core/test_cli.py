@@ -477,3 +477,36 @@ def test_mirror_rays_options():
                    "interpolate": "interpolate"}
     with pytest.raises(ValueError, match="mirror_rays must be one of"):
         QueryOptions(mirror_rays="blend").validate()
+
+
+def test_bake_quality_presets():
+    """--quality picks a preset's depths, viewpoint refinement and tolerance (default: default,
+    BakeParams' defaults, the add-on's Default); a depth, refinement or tolerance flag takes
+    over the preset's value; bake and demo parse them alike."""
+    from riray.cli import _bake_params
+    from riray.ritree.tree import BakeParams
+
+    def params(*argv, cmd=("bake", "teapot", "--out", "t.rit")):
+        p = _bake_params(build_parser().parse_args([*cmd, *argv]))
+        return p.viewpoint_depth, p.direction_depth, p.viewpoint_refine, p.tolerance_deg
+
+    assert _bake_params(build_parser().parse_args(["bake", "teapot", "--out", "t.rit"])) == \
+        BakeParams()
+    assert params() == params("--quality", "default") == (5, 6, 2, 0.5)
+    assert params("--quality", "fast") == (4, 5, 2, 0.5)
+    assert params("--quality", "draft") == (3, 4, 1, 1.0)
+    assert params("--quality", "fast", "--viewpoint-depth", "2") == (2, 5, 2, 0.5)
+    assert params("--quality", "draft", "--direction-depth", "7", "--viewpoint-refine", "0",
+                  "--tolerance", "0.25") == (3, 7, 0, 0.25)
+    assert params("--direction-depth", "3") == (5, 3, 2, 0.5)
+    assert params("--quality", "fast", cmd=("demo",)) == (4, 5, 2, 0.5)
+
+
+def test_query_defaults_are_query_options():
+    """Without flags, render / trace-rays / demo answer through QueryOptions' defaults (the
+    add-on's render-time defaults are the same: tests/addon/test_settings.py)."""
+    from riray.cli import _query_options
+    from riray.ritree.query import QueryOptions
+    for argv in (["render", "teapot", "--tree", "t.rit", "--out", "x"],
+                 ["trace-rays", "teapot", "--rays", "r.npy", "--out", "x"], ["demo"]):
+        assert _query_options(build_parser().parse_args(argv)) == QueryOptions(), argv

@@ -48,7 +48,8 @@ from riray.scene.samples import build
 def paper(**kw) -> QueryOptions:
     """The paper's rules (no baked-error tolerance, interpolated mirror rays) with options
     ``kw``."""
-    return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate", **kw})
+    return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate",
+                            "many_classes": "trace", **kw})
 
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")

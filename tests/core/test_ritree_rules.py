@@ -18,6 +18,8 @@ of the two produced it.
   triangle of the cell holding the query (4.3, Figure 12).
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -26,6 +28,7 @@ from riray.trace.scene_tracer import SceneTracer
 from riray.ritree.dircube import DOMAIN, N_SLOTS, UV_AXES
 from riray.ritree.quadtree import Forest
 from riray.ritree.query import (EXTRA_S, FULL, MISS, REDUCED, TRACED, WHY_CLASSES,
+                                WHY_UNSAMPLED, WHY_USABLE,
                                 QueryOptions, TreeQuery)
 from riray.ritree.tree import BakeParams, RITree, Samples
 from riray.scene.model import ObjectMaterial, Patch, RenderSettings, Scene, SpecularObject
@@ -34,7 +37,8 @@ from riray.scene.model import ObjectMaterial, Patch, RenderSettings, Scene, Spec
 def paper(**kw) -> QueryOptions:
     """The paper's rules (no baked-error tolerance, mirror rays blended) with options
     ``kw``."""
-    return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate", **kw})
+    return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate",
+                            "many_classes": "trace", **kw})
 
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
@@ -173,6 +177,48 @@ def test_more_than_two_classes_are_traced():
     res1, ans1, _, _ = TreeQuery(one_cell_tree(np.zeros(16, int), n_classes=3), st, OPTS)(o, d)
     assert np.all(ans1 == FULL)
     assert_field(res1, np.arange(len(o)), al, be, lx, ly)
+
+def test_more_than_two_classes_take_the_exact_first_hits_class():
+    """The same three-class tree, many_classes "first_hit": every ray's exact first hit is on
+    patch 0, so the 14 class-0 samples answer it (the field, exactly: interpolation of an
+    affine field is exact wherever a corner is missing too); none is traced for its classes,
+    only where the missing corners leave too few usable samples (paper 4.3's triangles)."""
+    patch = np.zeros(16, int)
+    patch[7], patch[8] = 1, 2
+    st = mirrors((-3, 3, -3, 3), (5, 6, 5, 6), (7, 8, 7, 8))
+    o, d, al, be, lx, ly, _ = queries(2000, 1)
+    res, ans, why, stats = TreeQuery(one_cell_tree(patch, n_classes=3), st,
+                                     replace(OPTS, many_classes="first_hit"))(o, d)
+    assert not np.any(why == WHY_CLASSES)
+    answered = np.flatnonzero(ans != TRACED)
+    assert len(answered) > 0.4 * len(o)
+    assert np.all(why[ans == TRACED] == WHY_USABLE)
+    assert np.all((ans[answered] == FULL) | (ans[answered] == REDUCED))
+    assert_field(res, answered, al, be, lx, ly)
+    assert np.all(res.cls == 0) and stats["exact_first_hits"] == len(o)
+
+
+def test_more_than_two_classes_exact_miss_and_unsampled_hit():
+    """Three classes among the samples, first_hit: a ray whose exact first hit misses every
+    patch is a miss (its output the input ray, not traced); one whose first hit is on a patch
+    of a class none of its samples has (patch 3) is traced as an unsampled hit, exactly."""
+    patch = np.zeros(16, int)
+    patch[7], patch[8] = 1, 2
+    # patch 0 under x < 0 only; patch 3 (class 3, no sample) under x > 0, y > 0.5
+    st = mirrors((-3, 0, -3, 3), (5, 6, 5, 6), (7, 8, 7, 8), (0, 3, 0.5, 3))
+    o, d, al, be, lx, ly, ground = queries(2000, 2)
+    opts = replace(OPTS, many_classes="first_hit")
+    res, ans, why, _ = TreeQuery(one_cell_tree(patch, n_classes=4), st, opts)(o, d)
+    gx, gy = ground[:, 0], ground[:, 1]
+    miss = (gx > MARGIN) & (gy < 0.5 - MARGIN)
+    other = (gx > MARGIN) & (gy > 0.5 + MARGIN)
+    assert miss.sum() > 100 and other.sum() > 100
+    assert np.all(ans[miss] == MISS) and not res.hit[miss].any()
+    assert np.array_equal(res.out_dir[miss], d[miss])
+    assert np.all((ans[other] == TRACED) & (why[other] == WHY_UNSAMPLED))
+    assert_traced(res, np.flatnonzero(other), d, ground)
+    assert np.all(res.cls[other] == 3)
+
 
 
 # --------------------------------------------------------------------------- exact first hit

@@ -25,6 +25,7 @@ import pytest
 
 from riray.geometry.primitives import bilinear, box_faces, sphere
 from riray.trace.scene_tracer import SceneTracer
+from riray.trace.objectfn import RECORDED_EVENTS
 from riray.ritree import bake as bake_mod
 from riray.ritree import cache
 from riray.ritree import derive as derive_mod
@@ -909,10 +910,10 @@ class CountingTracer:
         self._f = st.object_function
 
     def __enter__(self):
-        def wrapped(o, d, tmax=None):
+        def wrapped(o, d, tmax=None, **kw):
             self.rays += len(o)
             self.log.append(("trace", len(o)))
-            return self._f(o, d, tmax)
+            return self._f(o, d, tmax, **kw)
         self.st.object_function = wrapped
         return self
 
@@ -1131,7 +1132,7 @@ def test_malformed_forest_links_are_refused(tmp_path, mirror):
 
 
 def test_stored_samples_round_trip():
-    """Misses keep no output codes (zeros on load); hits, patches, null flags and ray-tree
+    """Misses keep no output codes (zeros on load, no path events: -1); hits, patches, null flags and ray-tree
     hashes come back exactly; hashes are indices into their distinct values, in the
     smallest dtype that holds them."""
     rng = np.random.default_rng(5)
@@ -1145,6 +1146,9 @@ def test_stored_samples_round_trip():
                            point_q=rng.integers(0, 65535, (n, 3)).astype(np.uint16),
                            normal_q=rng.integers(-32767, 32767, (n, 2)).astype(np.int16),
                            uv_q=rng.integers(0, 65535, (n, 2)).astype(np.uint16),
+                           ev_patch=rng.integers(-1, 9, (n, RECORDED_EVENTS)).astype(np.int32),
+                           ev_uv_q=rng.integers(0, 65535, (n, 2 * RECORDED_EVENTS)
+                                                ).astype(np.uint16),
                            patch=patch, null=rng.random(n) < 0.1, tree=hashes.astype(np.uint32),
                            lo=np.zeros(3), hi=np.ones(3))
         st = ps.stored()
@@ -1153,7 +1157,7 @@ def test_stored_samples_round_trip():
         hit = patch >= 0
         for k in PackedSamples.CODES:
             assert np.array_equal(getattr(back, k)[hit], getattr(ps, k)[hit])
-            assert not getattr(back, k)[~hit].any()
+            assert np.all(getattr(back, k)[~hit] == (-1 if k == "ev_patch" else 0))
         for k in ("patch", "null", "tree"):
             assert np.array_equal(getattr(back, k), getattr(ps, k)), k
         if n:

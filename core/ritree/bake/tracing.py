@@ -4,6 +4,7 @@ processes, with progress and cancelling between chunks."""
 from __future__ import annotations
 
 from ...parallel import map_chunks
+from ...trace.objectfn import EventRecord
 from ..dircube import cube_to_dir
 from ..tree import Samples
 
@@ -27,7 +28,8 @@ class Tracer:
         cfg = self.cfg
 
         def work(a, b):
-            return Samples.from_rays(cfg.st.object_function(o[a:b], d[a:b]))
+            rec = EventRecord.empty(b - a)
+            return Samples.from_rays(cfg.st.object_function(o[a:b], d[a:b], record=rec), rec)
 
         def prog(frac):
             if cfg.cancel is not None and cfg.cancel():

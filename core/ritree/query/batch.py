@@ -109,7 +109,7 @@ class Batch:
     sets: SampleSets | None = None     # the located rays' sample sets (S)
     go: np.ndarray | None = None       # (G,) rows of ``loc`` not answered yet
     set_of: np.ndarray | None = None   # (G,) sample set of each
-    pc: np.ndarray | None = None       # (G,) class (-1: miss, -2: more than two)
+    pc: np.ndarray | None = None       # (G,) class (-1: miss, -2: traced)
     units: Units | None = None         # the (set, class) pairs of the open rays
     unit_of: np.ndarray | None = None  # (G,) unit of each (once units are formed)
     weights: Weights | None = None     # (G) their interpolation weights

@@ -19,6 +19,7 @@ DEFAULT_MAX_ERROR_DEG = 2.0
 # patch, reflected at the exact hit that Newton finds from the interpolated patch parameters.
 MIRROR_BLEND, MIRROR_NORMAL, MIRROR_NEWTON = 0, 1, 2
 MIRROR_RAYS = ("newton", "reflect", "interpolate")
+MANY_CLASSES = ("first_hit", "trace")
 
 
 @dataclass
@@ -50,6 +51,11 @@ class QueryOptions:
                                        # there the tolerance gives way to the paper's rules with
                                        # this angle threshold (unless angle_deg is set; None:
                                        # keep the tolerance, which then traces every ray)
+    many_classes: str = "first_hit"    # a ray whose 16 samples hold more than two classes:
+                                       # "first_hit" takes the class of its exact first hit
+                                       # (against every patch; a miss is answered exactly, a
+                                       # patch none of the samples hit is traced), "trace"
+                                       # traces it (the paper's two-patch condition)
     path_identity: bool = False        # trace rays whose usable samples differ in ray-tree hash
                                        # or whose leaves / cell the bake saw change path
     mirror_rays: str = "newton"        # mirrors ("ri" policy), a ray whose usable samples all
@@ -69,6 +75,9 @@ class QueryOptions:
         if self.threshold_leaves not in ("unverified", "all"):
             raise ValueError("threshold_leaves must be 'unverified' or 'all', "
                              f"got {self.threshold_leaves!r}")
+        if self.many_classes not in MANY_CLASSES:
+            raise ValueError(f"many_classes must be one of {MANY_CLASSES}, "
+                             f"got {self.many_classes!r}")
         if self.mirror_rays not in MIRROR_RAYS:
             raise ValueError(f"mirror_rays must be one of {MIRROR_RAYS}, got {self.mirror_rays!r}")
         for name in ("extrapolation", "angle_deg", "distance", "max_error_deg",
