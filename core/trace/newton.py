@@ -4,7 +4,10 @@ A ray is written as the intersection of two planes through it (``ray_planes``); 
 projected onto them once per (ray, net) pair (``project_nets``: two scalar nets and the weights),
 which also serves the end-on convex-hull test (``hull_meets``). Each iteration then evaluates
 three scalar polynomials and solves a 2x2 system (``newton``), from seeds on the net's corner
-triangles (``newton_seed``). Distances are in scene units (metres); (s, t) are net-local, in [0, 1]^2.
+triangles (``newton_seed``). Given bounds of the nets' second partials
+(``second_derivative_bounds``), a run stops after the step whose end Taylor's remainder proves
+within tolerance, without evaluating it. Distances are in scene units (metres); (s, t) are
+net-local, in [0, 1]^2.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ HULL_GAP_SLACK = 1e-9
 HULL_POINT_REL = 1e-12
 
 
-def newton(proj, p, q, s, t, tol, stats):
+def newton(proj, p, q, s, t, tol, stats, bound=None):
     """Newton iterations in place on (s, t) for nets of degree (p, q) projected onto their
     rays' planes (``project_nets``: proj (n, (p+1)(q+1), 3)); returns the converged mask: the
     residual distance from the ray is at most ``tol`` (m). Each step component is clipped to
@@ -48,19 +51,41 @@ def newton(proj, p, q, s, t, tol, stats):
 
     With A, B, W the projected nets' values, the ray planes' residuals are f1 = A / W,
     f2 = B / W (distances of the surface point from the planes) and their partials
-    (A_s - W_s f1) / W etc.: the rational surface's, without forming its points."""
+    (A_s - W_s f1) / W etc.: the rational surface's, without forming its points.
+
+    ``bound`` (n, 3): the nets' ``second_derivative_bounds``, or None. With it a full step
+    within [0, 1]^2 ends the run converged, unevaluated, where Taylor's remainder proves the
+    residual at its end at most tol / 2 (``_proven``): quadratic convergence makes the last
+    step's size bound the error, so no confirming iteration is spent."""
     ok = np.zeros(len(s), bool)
     for lo in range(0, len(s), NEWTON_BLOCK):         # blocks stay in cache
         hi = min(lo + NEWTON_BLOCK, len(s))
-        ok[lo:hi] = _newton_block(proj[lo:hi], p, q, s[lo:hi], t[lo:hi], tol, stats)
+        ok[lo:hi] = _newton_block(proj[lo:hi], p, q, s[lo:hi], t[lo:hi], tol, stats,
+                                  None if bound is None else bound[lo:hi])
     return ok
 
 
-def _newton_block(proj, p, q, s, t, tol, stats):
+def _proven(bd, ss, tt, ds, dt, tol):
+    """Whether the Newton step (-ds, -dt) from (ss, tt) ends within tol / 2 of the ray.
+
+    f(x + D) = f(x) + J D + R with f(x) + J D = 0 for a full Newton step, and the residual's
+    rows are the unit ray-plane normals dotted with the surface S, so |R| <= |S(x + D) - S(x)
+    - S'(x) D| <= (Mss Ds^2 + 2 Mst |Ds Dt| + Mtt Dt^2) / 2 (Taylor, with ``bd`` = (Mss, Mst,
+    Mtt) bounding the second partials on [0, 1]^2, which holds the whole step)."""
+    a, b = np.abs(ds), np.abs(dt)
+    full = np.maximum(a, b) <= MAX_STEP
+    a, b = np.minimum(a, MAX_STEP), np.minimum(b, MAX_STEP)             # (no overflow)
+    rem = (bd[:, 0] * a + 2.0 * bd[:, 1] * b) * a + bd[:, 2] * b * b
+    # both ends in [0, 1]^2 (|x - 1/2| <= 1/2), the whole step with them
+    return (full & (rem <= tol) & (np.maximum(np.abs(ss - 0.5), np.abs(ss - ds - 0.5)) <= 0.5)
+            & (np.maximum(np.abs(tt - 0.5), np.abs(tt - dt - 0.5)) <= 0.5))
+
+
+def _newton_block(proj, p, q, s, t, tol, stats, bound):
     """newton on one block (s, t: views, updated in place)."""
     ok = np.zeros(len(s), bool)
     act = np.arange(len(s))
-    fa, ss, tt = proj, s.copy(), t.copy()
+    fa, ss, tt, bd = proj, s.copy(), t.copy(), bound
     for _ in range(NEWTON_ITERS):
         if len(act) == 0:
             break
@@ -87,8 +112,11 @@ def _newton_block(proj, p, q, s, t, tol, stats):
         safe = np.where(sing, np.where(dead, 1.0, frob), det)
         ds = np.where(sing, a * f1 + c * f2, e * f1 - b * f2) / safe
         dt = np.where(sing, b * f1 + e * f2, a * f2 - c * f1) / safe
+        # a full step (no clipping: |ds|, |dt| <= MAX_STEP) proven to land within tolerance
+        proven = False if bd is None else ~sing & _proven(bd, ss, tt, ds, dt, tol)
         ss -= np.where(conv, 0.0, np.clip(ds, -MAX_STEP, MAX_STEP))
         tt -= np.where(conv, 0.0, np.clip(dt, -MAX_STEP, MAX_STEP))
+        conv = conv | proven
         done = conv | dead | (ss < -1.0) | (ss > 2.0) | (tt < -1.0) | (tt > 2.0)
         if done.any():
             ok[act[conv]] = True
@@ -96,9 +124,47 @@ def _newton_block(proj, p, q, s, t, tol, stats):
             t[act[done]] = tt[done]
             keep = ~done
             act, fa, ss, tt = act[keep], fa[keep], ss[keep], tt[keep]
+            bd = None if bd is None else bd[keep]
     s[act] = ss
     t[act] = tt
     return ok
+
+
+def second_derivative_bounds(ctrl):
+    """Upper bounds (n, 3) of |S_ss|, |S_st|, |S_tt| (scene units per local parameter unit
+    squared) on [0, 1]^2 for rational Bezier nets ``ctrl`` (n, p+1, q+1, 4), weights > 0.
+
+    With Y = S - c (c the control points' centroid), P = w Y's homogeneous net and w the
+    weights: Y_s = (P_s - w_s Y) / w, Y_ss = (P_ss - 2 w_s Y_s - w_ss Y) / w, Y_st = (P_st - w_s
+    Y_t - w_t Y_s - w_st Y) / w; each polynomial partial is at most its degree factor times the
+    largest forward difference of its net (the Bernstein weights are >= 0 and sum to 1 on
+    [0, 1]^2), |Y| at most the farthest control point from c, w at least the least weight."""
+    p, q = ctrl.shape[1] - 1, ctrl.shape[2] - 1
+    w = ctrl[..., 3]
+    X = ctrl[..., :3] / w[..., None]
+    c = X.mean(axis=(1, 2))
+    R = np.linalg.norm(X - c[:, None, None], axis=-1).max(axis=(1, 2))
+    P = ctrl[..., :3] - w[..., None] * c[:, None, None]
+
+    def diff(net, ks, kt):
+        """Degree factor times the largest norm of the (ks, kt)-th forward difference."""
+        if ks > p or kt > q:
+            return np.zeros(len(net))
+        for _ in range(ks):
+            net = net[:, 1:] - net[:, :-1]
+        for _ in range(kt):
+            net = net[:, :, 1:] - net[:, :, :-1]
+        size = np.linalg.norm(net, axis=-1) if net.ndim == 4 else np.abs(net)
+        fac = np.prod(np.arange(p - ks + 1, p + 1)) * np.prod(np.arange(q - kt + 1, q + 1))
+        return float(fac) * size.max(axis=(1, 2))
+
+    wmin = w.min(axis=(1, 2))
+    ws, wt = diff(w, 1, 0), diff(w, 0, 1)
+    ys = (diff(P, 1, 0) + ws * R) / wmin
+    yt = (diff(P, 0, 1) + wt * R) / wmin
+    return np.stack([(diff(P, 2, 0) + 2.0 * ws * ys + diff(w, 2, 0) * R) / wmin,
+                     (diff(P, 1, 1) + ws * yt + wt * ys + diff(w, 1, 1) * R) / wmin,
+                     (diff(P, 0, 2) + 2.0 * wt * yt + diff(w, 0, 2) * R) / wmin], axis=1)
 
 
 def ray_planes(d):
@@ -147,13 +213,12 @@ def project_nets(ctrl, ro, rd):
     coordinates in the plane seen end-on along the ray, which passes through (0, 0)."""
     n1, n2 = ray_planes(rd)
     h = ctrl.reshape(len(ctrl), -1, 4)
-    nrm = np.stack([n1, n2], axis=2)                                    # (n, 3, 2)
-    proj = np.empty(h.shape[:2] + (3,))
-    np.matmul(h[..., :3], nrm, out=proj[..., :2])
-    proj[..., 0] -= np.einsum("ij,ij->i", n1, ro)[:, None] * h[..., 3]
-    proj[..., 1] -= np.einsum("ij,ij->i", n2, ro)[:, None] * h[..., 3]
-    proj[..., 2] = h[..., 3]
-    return proj
+    m = np.zeros((len(h), 4, 3))               # (x, y, z, w) -> (A, B, w): one matmul
+    m[:, :3, 0], m[:, :3, 1] = n1, n2
+    m[:, 3, 0] = -np.einsum("ij,ij->i", n1, ro)
+    m[:, 3, 1] = -np.einsum("ij,ij->i", n2, ro)
+    m[:, 3, 2] = 1.0
+    return h @ m
 
 
 def hull_meets(proj):

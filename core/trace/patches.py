@@ -30,7 +30,7 @@ from ..scene.model import Mesh, SpecularObject
 from .hits import PatchHit
 from .meshes import MeshSet
 from .newton import (MAX_STEP, NEWTON_BLOCK, NEWTON_ITERS, NEWTON_TOL_REL, hull_meets, project_nets,
-                     ray_planes, newton)
+                     ray_planes, newton, second_derivative_bounds)
 from .roots import DEGENERATE_REL, PARAM_MARGIN, RootSearch
 from .subpatches import bezier_pieces, flat_subpatches
 
@@ -79,7 +79,8 @@ class PatchTracer:
     def _stack_pieces(self):
         """All patches' Bezier pieces in one index space (``piece_base[patch]`` + the patch's
         own piece index): their parameter rectangles and patches, and their nets stacked per degree
-        (``piece_nets[piece_group[k]][piece_local[k]]``), for Newton runs on known pieces."""
+        (``piece_nets[piece_group[k]][piece_local[k]]``) with their ``second_derivative_bounds``
+        (``piece_bounds``, the same layout), for Newton runs on known pieces."""
         self.piece_base = np.full(len(self.object.patches), -1, np.int64)
         rect, group, local, owner, nets, degrees = [], [], [], [], [], {}
         base = 0
@@ -100,6 +101,7 @@ class PatchTracer:
         self.piece_local = np.concatenate(local) if local else np.zeros(0, np.int64)
         self.piece_patch = np.concatenate(owner) if owner else np.zeros(0, np.int64)
         self.piece_nets = [np.concatenate(x) for x in nets]
+        self.piece_bounds = [second_derivative_bounds(x) for x in self.piece_nets]
 
     def _build_meshes(self, obj):
         meshes, ids = [], []
@@ -184,11 +186,12 @@ class PatchTracer:
                 part = idx[c:c + PAIR_CHUNK]
                 search.solve_pairs(ray[part], prim[part])
 
-    def solve_newton(self, proj, p, q, s, t):
+    def solve_newton(self, proj, p, q, s, t, bound=None):
         """``newton.newton`` at this object's tolerance (NEWTON_TOL_REL of its diagonal): in
         place on (s, t) for nets of degree (p, q) projected onto their rays' planes
-        (``project_nets``); returns the converged mask."""
-        return newton(proj, p, q, s, t, NEWTON_TOL_REL * self.diag, self.stats)
+        (``project_nets``), with the nets' second-derivative ``bound`` if given (runs then end
+        without a confirming iteration); returns the converged mask."""
+        return newton(proj, p, q, s, t, NEWTON_TOL_REL * self.diag, self.stats, bound)
 
 
 def _allowed(pid, patches):

@@ -3,9 +3,11 @@
 The RI-Tree query knows, for a mirror ray whose interpolating samples all reflect once off one
 patch, that patch and an interpolated parameter (u, v) close to the ray's hit on it. Newton's
 method on the Bezier piece holding the seed (the tracer's two-plane form,
-``PatchTracer.solve_newton``) converges to that hit in a few iterations: about a fifth of what the
-full search costs (BVH walk, candidate pairs, seeds, fallback splits). It does not tell
-whether the ray meets something else first; that the caller takes from the samples.
+``PatchTracer.solve_newton``, with the pieces' second-derivative bounds: a run ends on the step
+proven to land within tolerance) converges to that hit in about two iterations from the
+interpolated seed: a small part of what the full search costs (BVH walk, candidate pairs,
+seeds, fallback splits). It does not tell whether the ray meets something else first; that
+the caller takes from the samples.
 
 Units: t and distances in scene units; (u, v) normalized to the patch's domain [0, 1]^2.
 """
@@ -129,10 +131,11 @@ def _newton(tracer, o, d, k, s, t):
     grp = tracer.piece_group[k]
     for g in np.unique(grp):
         m = np.flatnonzero(grp == g)
-        nets = tracer.piece_nets[g][tracer.piece_local[k[m]]]
+        loc = tracer.piece_local[k[m]]
+        nets = tracer.piece_nets[g][loc]
         ss, tt = s[m], t[m]
         ok[m] = tracer.solve_newton(project_nets(nets, o[m], d[m]), nets.shape[1] - 1,
-                               nets.shape[2] - 1, ss, tt)
+                                    nets.shape[2] - 1, ss, tt, tracer.piece_bounds[g][loc])
         s[m], t[m] = ss, tt
     return ok
 
