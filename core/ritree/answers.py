@@ -7,10 +7,13 @@ import numpy as np
 
 # Answer codes: how each ray was answered. FULL..EXTRAPOLATED_S interpolate an output ray;
 # NULL_S answers the null ray (trapped: every interpolant of the query's class is null);
-# TRACED and OUTSIDE (not in the baked region) are answered by the exact tracer.
+# SOLVED is exact, solved along a sample's path (query/paths.py); TRACED and OUTSIDE (not in
+# the baked region) are answered by the exact tracer.
 MISS, FULL, REDUCED, EXTRA_S, EXTRAPOLATED_S, TRACED, OUTSIDE, NULL_S = 0, 1, 2, 3, 4, 5, 6, 7
+SOLVED = 8
 ANSWER_NAMES = ("miss", "interpolated_16", "interpolated_reduced", "interpolated_extra",
-                "interpolated_extrapolated", "traced", "traced_outside_tree", "interpolated_null")
+                "interpolated_extrapolated", "traced", "traced_outside_tree", "interpolated_null",
+                "solved_along_path")
 # Why a ray was traced.
 WHY_CLASSES, WHY_USABLE, WHY_THRESHOLD, WHY_RAYTREE, WHY_BLEND = 1, 2, 3, 4, 5
 WHY_TOLERANCE, WHY_UNSAMPLED, WHY_PATH = 6, 7, 8

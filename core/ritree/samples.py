@@ -79,7 +79,8 @@ class Samples:
                              point_q=encode_points(self.point, lo, hi)[0],
                              normal_q=encode_unit_vectors(self.normal),
                              uv_q=encode_params(self.uv),
-                             ev_patch=self.ev_patch.astype(np.int32),
+                             ev_patch=self.ev_patch.astype(
+                                 np.int16 if self.ev_patch.max(initial=0) < 32767 else np.int32),
                              ev_uv_q=encode_params(self.ev_uv.reshape(-1, 2)).reshape(
                                  len(self), 2 * RECORDED_EVENTS),
                              patch=self.patch.astype(np.int16 if self.patch.max(initial=0) < 32767
@@ -106,7 +107,7 @@ class PackedSamples:
     point_q: np.ndarray
     normal_q: np.ndarray
     uv_q: np.ndarray        # (S, 2) uint16 normalized patch parameter codes
-    ev_patch: np.ndarray    # (S, K) int32 the patches of events 1..K (-1: none)
+    ev_patch: np.ndarray    # (S, K) int16/int32 the patches of events 1..K (-1: none)
     ev_uv_q: np.ndarray     # (S, 2K) uint16 their normalized patch parameter codes
     patch: np.ndarray       # (S,) int16/int32
     null: np.ndarray        # (S,) bool
@@ -121,7 +122,7 @@ class PackedSamples:
     CODES = FIELDS[:7]          # the output codes (stored for hits only)
     CODE_FORMS = {"out_o_q": (np.uint16, 3), "out_d_q": (np.int16, 2), "point_q": (np.uint16, 3),
                   "normal_q": (np.int16, 2), "uv_q": (np.uint16, 2),
-                  "ev_patch": (np.int32, RECORDED_EVENTS),
+                  "ev_patch": (None, RECORDED_EVENTS),      # int16 or int32, as patch
                   "ev_uv_q": (np.uint16, 2 * RECORDED_EVENTS)}   # dtype, columns
     STORED = ("patch", "null_bits", "tree_table", "tree_code", "geom") + CODES
 
@@ -191,8 +192,10 @@ class PackedSamples:
             raise ValueError("sample patches are not a list of integers")
         for k, (dtype, cols) in cls.CODE_FORMS.items():
             q = np.asarray(a[k])
-            if q.dtype != dtype or q.ndim != 2 or q.shape[1] != cols:
-                raise ValueError(f"s.{k} is not (n, {cols}) {np.dtype(dtype).name} codes")
+            ok = q.dtype in (np.int16, np.int32) if dtype is None else q.dtype == dtype
+            if not ok or q.ndim != 2 or q.shape[1] != cols:
+                name = "int16/int32" if dtype is None else np.dtype(dtype).name
+                raise ValueError(f"s.{k} is not (n, {cols}) {name} codes")
         n, hit = len(patch), np.flatnonzero(patch >= 0)
         table, code = np.asarray(a["tree_table"]), np.asarray(a["tree_code"])
         geom_hit = np.asarray(a["geom"])

@@ -276,7 +276,7 @@ def _file_table(c: dict) -> dict:
         "s.geom": (("|u1",), (H,)), "s.out_d_q": (("<i2",), (H, 2)), "s.uv_q": (("<u2",), (H, 2)),
         "s.point_q": (("<u2",), (c["Hp"], 3)), "s.normal_q": (("<i2",), (c["Hp"], 2)),
         "s.out_o_q": (("<u2",), (c["Ho"], 3)),
-        "s.ev_patch": (("<i4",), (H, RECORDED_EVENTS)),
+        "s.ev_patch": (("<i2", "<i4"), (H, RECORDED_EVENTS)),
         "s.ev_uv_q": (("<u2",), (H, 2 * RECORDED_EVENTS))}
 
 

@@ -29,9 +29,9 @@ TREE_HASH_SEED = 2166136261
 TREE_HASH_PRIME = 16777619
 REFLECT, REFRACT = 1, 2
 # Events after the first whose hits a path record keeps (EventRecord): the RI-Tree's samples
-# carry them as seeds for solving a query ray exactly along a sample's path (4 events: a ray
-# through both walls of a hollow glass object).
-RECORDED_EVENTS = 3
+# carry them as seeds for solving a query ray exactly along a sample's path; 7 covers every
+# path of the default max_events (8), trapped ones included.
+RECORDED_EVENTS = 7
 
 
 def tree_hash_step(h, patch, kind):
@@ -192,7 +192,7 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
         keep = ~esc
         act, cur_o, cur_d, inside, tree = act[keep], cur_o[keep], cur_d[keep], inside[keep], tree[keep]
         pts, patch = nxt.point[keep], nxt.patch[keep]
-        if record is not None and event < RECORDED_EVENTS:
+        if record is not None and event < min(RECORDED_EVENTS, max_events - 1):
             record.patch[act, event] = patch
             record.uv[act, event] = tracer.normalized_uv(patch, nxt.u[keep], nxt.v[keep])
         nrm = nxt.normal[keep]

@@ -50,7 +50,8 @@ def polish_hits(tracer: PatchTracer, o, d, seeds: Seeds, max_move: float, min_co
         r = np.flatnonzero(~res.hit)
         if len(r):
             alt = Seeds(seeds.patch[r], seeds.alt_uvn[r], seeds.point[r], seeds.normal[r])
-            res.put(r, _polish(tracer, np.asarray(o)[r], np.asarray(d)[r], alt, max_move,
+            move = np.broadcast_to(np.asarray(max_move, np.float64), res.hit.shape)[r]
+            res.put(r, _polish(tracer, np.asarray(o)[r], np.asarray(d)[r], alt, move,
                                min_cos, tmin[r], tmax[r]))
     return res
 
@@ -59,7 +60,8 @@ def _polish(tracer: PatchTracer, o, d, seeds: Seeds, max_move: float, min_cos: f
             tmin, tmax) -> PatchHit:
     """Hits of rays ``o``, ``d`` (N, 3; unit d) on their seeds' patches by Newton from the
     seeds' parameters. A hit is kept (``hit`` True) where Newton converged inside the patch at
-    a distance t in (tmin, tmax) (N,), within ``max_move`` (scene units) of the seed's point,
+    a distance t in (tmin, tmax) (N,), within ``max_move`` (scene units; one for all rays or
+    (N,)) of the seed's point,
     and with its normal facing the ray at a cosine >= ``min_cos`` to the seed's normal (a
     grazing ray's second root, where it leaves the surface, faces the other way). Rays on
     mesh patches get no hit. ``normal``: the unit normal as the surface is oriented;
@@ -108,7 +110,8 @@ def keep_near(h: PatchHit, d, seeds: Seeds, max_move: float, min_cos: float) -> 
     nk = h.normal[k]
     facing = np.einsum("ij,ij->i", np.where((np.einsum("ij,ij->i", nk, d[k]) > 0)[:, None],
                                             -nk, nk), seeds.normal[k])
-    far = (facing < min_cos) | (np.linalg.norm(h.point[k] - seeds.point[k], axis=1) > max_move)
+    move = np.broadcast_to(np.asarray(max_move, np.float64), h.hit.shape)[k]
+    far = (facing < min_cos) | (np.linalg.norm(h.point[k] - seeds.point[k], axis=1) > move)
     h.hit[k[far]] = False
 
 

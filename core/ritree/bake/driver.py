@@ -27,7 +27,8 @@ def refine_rule():
     with its 20-degree angle threshold, null rays traced (since 527fbe9; answered null before),
     not the render-time default, which may change."""
     from ..query import QueryOptions
-    return QueryOptions(angle_deg=REFINE_ANGLE_DEG, max_error_deg=None, null_interp=False)
+    return QueryOptions(angle_deg=REFINE_ANGLE_DEG, max_error_deg=None, null_interp=False,
+                        many_classes="trace", solve_paths=False)
 
 
 def finest_rule():
@@ -38,7 +39,7 @@ def finest_rule():
     return QueryOptions(policy="ri", extrapolation=None, angle_deg=None, distance=None,
                         null_interp=True, max_error_deg=FINEST_TOLERANCE_DEG,
                         fallback_angle_deg=REFINE_ANGLE_DEG, path_identity=False,
-                        mirror_rays="newton")
+                        mirror_rays="newton", many_classes="trace", solve_paths=False)
 
 
 class Baker:

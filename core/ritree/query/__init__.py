@@ -31,7 +31,7 @@ class) decisions), thresholds and weights (per ray), blend and fill (the answers
 """
 
 from ..answers import (ANSWER_NAMES, EXTRA_S, EXTRAPOLATED_S, FULL, MISS, NULL_S, OUTSIDE,
-                       REDUCED, TRACED, WHY_BLEND, WHY_CLASSES, WHY_NAMES, WHY_PATH, WHY_RAYTREE,
+                       REDUCED, SOLVED, TRACED, WHY_BLEND, WHY_CLASSES, WHY_NAMES, WHY_PATH, WHY_RAYTREE,
                        WHY_THRESHOLD, WHY_TOLERANCE, WHY_UNSAMPLED, WHY_USABLE, is_interpolated,
                        is_traced)
 from .batch import StageClock
@@ -40,7 +40,7 @@ from .sets import group_rows
 from .tree_query import TRACING_STAGES, TreeQuery
 
 __all__ = ["ANSWER_NAMES", "DEFAULT_MAX_ERROR_DEG", "EXTRAPOLATED_S", "EXTRA_S", "FULL",
-           "MIRROR_RAYS", "MISS", "NULL_S", "OUTSIDE", "QueryOptions", "REDUCED", "StageClock",
+           "MIRROR_RAYS", "MISS", "NULL_S", "OUTSIDE", "QueryOptions", "REDUCED", "SOLVED", "StageClock",
            "TRACED", "TRACING_STAGES", "TreeQuery", "WHY_BLEND", "WHY_CLASSES", "WHY_NAMES",
            "WHY_PATH", "WHY_RAYTREE", "WHY_THRESHOLD", "WHY_TOLERANCE", "WHY_UNSAMPLED",
            "WHY_USABLE", "group_rows", "is_interpolated", "is_traced"]

@@ -105,11 +105,13 @@ class Batch:
     newton_ok: np.ndarray              # (N,) bool: Newton's exact hit answered the ray
     exact_first_hits: int = 0          # rays whose exact first hit picked their class
     exact_mirror_hits: int = 0         # mirror rays answered from Newton's exact hit
+    solved: int = 0                    # rays solved along a sample's path (SOLVED)
     loc: Located | None = None         # (M) the rays that found their four leaves
     sets: SampleSets | None = None     # the located rays' sample sets (S)
     go: np.ndarray | None = None       # (G,) rows of ``loc`` not answered yet
     set_of: np.ndarray | None = None   # (G,) sample set of each
     pc: np.ndarray | None = None       # (G,) class (-1: miss, -2: traced)
+    loc_pc: np.ndarray | None = None   # (M,) class of every located ray, as classified
     units: Units | None = None         # the (set, class) pairs of the open rays
     unit_of: np.ndarray | None = None  # (G,) unit of each (once units are formed)
     weights: Weights | None = None     # (G) their interpolation weights

@@ -35,6 +35,7 @@ def classify(q, b) -> None:
     b.exact_first_hits = len(two) + len(many)
     b.ans[rows[pc == -1]] = MISS
     b.pc = pc
+    b.loc_pc = pc.copy()
 
 
 def first_hit_class(q, b, two, two_sets, hit) -> np.ndarray:

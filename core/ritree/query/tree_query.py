@@ -7,11 +7,13 @@ from dataclasses import replace
 import numpy as np
 
 from ..answers import OUTSIDE, TRACED, WHY_TOLERANCE, is_traced
+from ...trace.proxy import Proxy
 from ..locate import locate
 from .batch import Batch
 from .blend import answer, blend_easy
 from .classes import classify
 from .options import QueryOptions
+from .paths import solve_paths
 from .raytree import raytree
 from .sets import group
 from .tolerance import check_misses, same_path, within_tolerance
@@ -19,8 +21,9 @@ from .units import decide
 from .weights import weights
 
 # Stages whose time is exact tracing the query calls (the rest is the query's own work):
-# "newton" is the tracer's Newton step on known patches (mirror_rays "newton").
-TRACING_STAGES = ("first_hits", "trace", "newton")
+# "newton" is the tracer's Newton step on known patches (mirror_rays "newton"), "paths" the
+# exact solves along samples' paths (query/paths.py).
+TRACING_STAGES = ("first_hits", "trace", "newton", "paths")
 
 
 class TreeQuery:
@@ -45,6 +48,8 @@ class TreeQuery:
         self.table = tree.table
         tree.blend_vals, tree.vp_locator, tree.dir_locator
         tree.leaf_ok, tree.leaf_sampled, tree.cell_rect
+        # the path solver's occlusion proxy (query/paths.py)
+        self.proxy = Proxy.of(st.tracer) if self.opt.solve_paths else None
         # a bake that measured no viewpoint cell (a full tree, or one whose every test ray was
         # traced) left no viewpoint-level errors to bound
         if (self.opt.max_error_deg is not None and self.opt.fallback_angle_deg is not None
@@ -81,9 +86,11 @@ class TreeQuery:
                 self._ri(b)
         # a ray past the tolerance that Newton did not answer is traced
         b.trace(np.flatnonzero(b.must & ~b.newton_ok & (b.ans != TRACED)), WHY_TOLERANCE)
+        if self.opt.solve_paths:
+            solve_paths(self, b)
         self._trace(b)
         stats = {"exact_first_hits": b.exact_first_hits,
-                 "exact_mirror_hits": b.exact_mirror_hits,
+                 "exact_mirror_hits": b.exact_mirror_hits, "solved_along_path": b.solved,
                  **{f"query_{k}_cpu_s": v for k, v in b.clock.cpu.items()}}
         return b.res, b.ans, b.why, stats
 

@@ -1,0 +1,212 @@
+"""Exact answers along a sample's path, for rays the tree would otherwise trace.
+
+A ray that the baked-error tolerance (or path identity) refuses usually takes the path of one of
+its samples: the same patches, in the same order, with the same reflections, refractions and
+total internal reflections. The tree stores each hit sample's path seeds (tree layout 6: the
+first hit's normalized patch parameters and those of the next RECORDED_EVENTS events), so the
+ray is solved event by event along the path of its nearest sample of its class: Newton on the
+patch the path visits from that sample's parameters there (``trace.polish``), each event's
+kind decided by the law at the solved point. The answer is kept only where
+
+- every event converged near its seed (``CHAIN_MAX_MOVE_REL``, ``CHAIN_MOVE_PER_OFFSET``,
+  ``CHAIN_MAX_TURN_DEG``),
+- the ray-tree hash of the solved chain equals the sample's: the same patches and event kinds
+  (a total internal reflection gained or lost changes it), and the path no longer than the
+  recorded events,
+- no segment of the chain, from the ray's origin to its first hit and between consecutive hits,
+  meets the object in between (the fine triangle proxy, ``trace.proxy``: the solver found *a*
+  crossing of each patch, this says it is the nearest),
+- and the last ray leaves the object (one exact intersect of it); a trapped sample's path is the
+  ray's only with all max_events events solved, and the ray is then trapped too.
+
+The others are traced.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ...trace.objectfn import (REFLECT, REFRACT, SECONDARY_T_MIN_REL, TREE_HASH_SEED,
+                               fresnel_dielectric, reflect, refract, tree_hash_step)
+from ...trace.patches import PatchHit
+from ...trace.polish import Seeds, polish_hits, surface_at
+from ..answers import COL, SOLVED, TRACED, WHY_PATH, WHY_TOLERANCE
+from .sets import N_CORNERS, N_DQ, SET_CORNERS
+
+# Each event's Newton root is kept only within this distance of its seed's surface point
+# (relative to the box diagonal), plus CHAIN_MOVE_PER_OFFSET times the distance between the
+# ray's and the sample's viewpoints (the sample's hit is that much farther from the ray's), and
+# with a normal within this angle of the seed's: the seed is the hit of a nearby sample on the
+# same patch, after as many events as the query ray; farther roots are another crossing of the
+# patch. Wider than the first hit's limits in fill.py: later events drift apart as the chain
+# bends.
+CHAIN_MAX_MOVE_REL = 5e-2
+CHAIN_MOVE_PER_OFFSET = 4.0
+CHAIN_MAX_TURN_DEG = 30.0
+# Rays refused for these reasons are solved along a sample's path before they are traced.
+SOLVABLE = (WHY_TOLERANCE, WHY_PATH)
+
+
+def solve_paths(q, b) -> None:
+    """Answer (SOLVED) the rays refused for SOLVABLE reasons whose exact path is their nearest
+    sample's of their class (the heaviest of the 16 under bilinear weights at both levels)."""
+    rays = np.flatnonzero((b.ans == TRACED) & np.isin(b.why, SOLVABLE))
+    if len(rays) == 0 or b.loc is None or b.loc_pc is None:
+        return
+    with b.clock("paths"):
+        row = np.full(len(b.o), -1)
+        row[b.loc.ray] = np.arange(len(b.loc))
+        m = row[rays]
+        keep = m >= 0
+        rays, m = rays[keep], m[keep]
+        pc = b.loc_pc[m]
+        keep = pc >= 0
+        rays, m, pc = rays[keep], m[keep], pc[keep]
+        sid, vp = nearest_of_class(q, b.loc.take(m), pc)
+        keep = sid >= 0
+        rays, sid, vp = rays[keep], sid[keep], vp[keep]
+        if len(rays):
+            entry = b.o[rays] + q.st.box_entry(b.o[rays], b.d[rays])[:, None] * b.d[rays]
+            offset = np.linalg.norm(entry - q.tree.vp_pos[vp], axis=1)
+            chain(q, b, rays, sid, CHAIN_MAX_MOVE_REL * q.tree.diag
+                  + CHAIN_MOVE_PER_OFFSET * offset)
+
+
+def nearest_of_class(q, loc, pc):
+    """((n,) the sample of class ``pc`` (trapped or not) of the located rays ``loc`` with the
+    largest bilinear weight at the viewpoint and direction levels (-1: none), (n,) its
+    viewpoint)."""
+    ids = q.tree.dir_forest.corner[loc.leaf].reshape(-1, SET_CORNERS)
+    w_vp = _bilinear(loc.alpha, loc.beta)                          # (n, 4) per DQ
+    w_dir = np.stack([_bilinear(loc.lx[:, k], loc.ly[:, k]) for k in range(N_DQ)], axis=1)
+    w = (w_vp[:, :, None] * w_dir).reshape(-1, SET_CORNERS)
+    usable = q.table.cls[ids] == pc[:, None]
+    w = np.where(usable, w, -1.0)
+    best = np.argmax(w, axis=1)
+    sid = ids[np.arange(len(ids)), best]
+    vp = q.tree.vp_forest.corner[loc.vnode, best // N_CORNERS]
+    return np.where(w[np.arange(len(ids)), best] >= 0, sid, -1), vp
+
+
+def _bilinear(x, y) -> np.ndarray:
+    """(n, 4) bilinear weights of the quadtree corners (0, 0), (1, 0), (0, 1), (1, 1)."""
+    return np.stack([(1 - x) * (1 - y), x * (1 - y), (1 - x) * y, x * y], axis=1)
+
+
+def chain(q, b, rays, sid, max_move) -> None:
+    """Solve query rays ``rays`` along the paths of samples ``sid`` and answer those kept;
+    ``max_move`` (n,): how far from its seed an event's root may lie (scene units)."""
+    tab, tracer, mat = q.table, q.st.tracer, q.material
+    patches = np.concatenate([tab.patch[sid, None].astype(np.int64),
+                              tab.ev_patch[sid].astype(np.int64)], axis=1)     # (n, E)
+    uvs = np.concatenate([tab.vals[sid, None, COL.UV], tab.ev_uv[sid]], axis=1)  # (n, E, 2)
+    n_ev = np.sum(patches >= 0, axis=1)
+    n = len(rays)
+    alive = np.ones(n, bool)
+    h = np.full(n, TREE_HASH_SEED, np.uint64)
+    cur_o, cur_d = b.o[rays].copy(), b.d[rays].copy()
+    inside = np.zeros(n, bool)
+    first = PatchHit.misses(n)
+    floor = np.full(n, SECONDARY_T_MIN_REL * tracer.diag)
+    min_cos = np.cos(np.radians(CHAIN_MAX_TURN_DEG))
+    fresnel, refl_dir = np.zeros(n), np.zeros((n, 3))
+    n_max = patches.shape[1]
+    pts, nrms, dirs = (np.zeros((n, n_max, 3)) for _ in range(3))
+    for e in range(n_max):
+        act = np.flatnonzero(alive & (e < n_ev))
+        if len(act) == 0:
+            break
+        pt, nm, on = surface_at(tracer, patches[act, e], uvs[act, e])
+        nm = np.where((np.einsum("ij,ij->i", nm, cur_d[act]) > 0)[:, None], -nm, nm)
+        seeds = Seeds(patches[act, e], uvs[act, e].astype(np.float64), pt, nm)
+        tmax = b.tmax[rays[act]] if e == 0 else np.full(len(act), np.inf)
+        hit = polish_hits(tracer, cur_o[act], cur_d[act], seeds, max_move[act], min_cos,
+                          floor[act], tmax)
+        if e == 0:
+            _known_first_hits(b, rays[act], patches[act, 0], hit)
+        ok = hit.hit & on
+        alive[act[~ok]] = False
+        act, hit = act[ok], hit.take(np.flatnonzero(ok))
+        if e == 0:
+            first.put(act, hit)
+        nrm = np.where((np.einsum("ij,ij->i", hit.normal, cur_d[act]) > 0)[:, None],
+                       -hit.normal, hit.normal)
+        d_in = cur_d[act]
+        if mat.kind == "mirror":
+            new_d, kind = reflect(d_in, nrm), np.full(len(act), REFLECT)
+        else:
+            eta = np.where(inside[act], mat.ior, 1.0 / mat.ior)
+            new_d, tir = refract(d_in, nrm, eta)
+            kind = np.where(tir, REFLECT, REFRACT)
+            if e == 0 and mat.kind == "dielectric":
+                fresnel[act] = fresnel_dielectric(-np.einsum("ij,ij->i", d_in, nrm), eta)
+                refl_dir[act] = reflect(d_in, nrm)
+            inside[act] ^= ~tir
+        h[act] = tree_hash_step(h[act], hit.patch, kind)
+        cur_o[act], cur_d[act] = hit.point, new_d
+        pts[act, e], nrms[act, e], dirs[act, e] = hit.point, nrm, new_d
+    good = np.flatnonzero(alive & (h.astype(np.uint32) == tab.tree[sid]))
+    good = good[~_crossed(q, b.o[rays[good]], b.d[rays[good]], pts[good], nrms[good],
+                          dirs[good], n_ev[good])]
+    # a trapped path is the ray's where all its max_events events are; any other must leave
+    null = tab.null[sid[good]]
+    good = good[~null | (n_ev[good] == q.st.scene.render.max_events)]
+    null = tab.null[sid[good]]
+    out = good[~null]
+    if len(out):
+        again = tracer.intersect(cur_o[out], cur_d[out], tmin=floor[out])
+        good = np.concatenate([good[null], out[~again.hit]])
+    null = tab.null[sid[good]]
+    cur_d[good[null]] = 0.0
+    _answer(q, b, rays[good], first.take(good), cur_o[good], cur_d[good], null,
+            n_ev[good], h[good].astype(np.uint32), fresnel[good], refl_dir[good])
+
+
+def _crossed(q, o, d, pts, nrms, dirs, n_ev) -> np.ndarray:
+    """(n,) bool: whether the proxy (trace.proxy) finds the object between the ray's origin
+    ``o`` (direction ``d``) and its first solved hit, or between two consecutive solved hits
+    (``pts``, ``nrms``: (n, E, 3) points and normals facing the incoming ray, ``dirs`` the
+    directions leaving them; ``n_ev`` events each)."""
+    bad = np.zeros(len(o), bool)
+    if len(o) == 0:
+        return bad
+    first = np.linalg.norm(pts[:, 0] - o, axis=1)
+    bad |= q.proxy.crossed(o, d, first, d, nrms[:, 0])
+    for e in range(pts.shape[1] - 1):
+        k = np.flatnonzero(~bad & (n_ev > e + 1))
+        if len(k) == 0:
+            break
+        seg = pts[k, e + 1] - pts[k, e]
+        bad[k] = q.proxy.crossed(pts[k, e], dirs[k, e], np.linalg.norm(seg, axis=1),
+                                 nrms[k, e], nrms[k, e + 1])
+    return bad
+
+
+def _known_first_hits(b, rows, patch, hit: PatchHit) -> None:
+    """Where the query found the exact first hit of rays ``rows`` already, it replaces
+    Newton's: kept if on the path's first patch ``patch``, else none."""
+    got = b.known.of(rows)
+    if got is not None:
+        k, kh = got
+        hit.hit[k] = False
+        same = np.flatnonzero(kh.hit & (kh.patch == patch[k]))
+        hit.put(k[same], kh.take(same))
+
+
+def _answer(q, b, rows, first: PatchHit, oo, od, null, events, tree_hash, fresnel,
+            refl_dir) -> None:
+    """Write the solved answers of query rays ``rows`` (SOLVED; ``null``: trapped, the
+    output origin its last hit and the direction zero, as the tracer answers it)."""
+    d = b.d[rows]
+    nrm = np.where((np.einsum("ij,ij->i", first.normal, d) > 0)[:, None], -first.normal,
+                   first.normal)
+    res = b.res
+    res.hit[rows], res.null[rows] = True, null
+    res.out_origin[rows], res.out_dir[rows] = oo, od
+    res.t_first[rows], res.point[rows], res.normal[rows] = first.t, first.point, nrm
+    res.patch[rows], res.cls[rows] = first.patch, q.st.tracer.class_of[first.patch]
+    res.events[rows], res.tree[rows] = events, tree_hash
+    res.fresnel[rows], res.refl_dir[rows] = fresnel, refl_dir
+    res.uv[rows] = q.st.tracer.normalized_uv(first.patch, first.u, first.v)
+    b.ans[rows] = SOLVED
+    b.solved += len(rows)
