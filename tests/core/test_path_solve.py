@@ -135,6 +135,21 @@ def corner():
                     region=top_cells(2, 0.25, 0.75), workers=1)
 
 
+@pytest.fixture(scope="module")
+def blocked():
+    """The mirror corner with a strip of mirror floating over the floor: rays meet it on the
+    way in or on their way up from the floor, between samples that do not."""
+    floor = bilinear(P(-1, -1, 0), P(1, -1, 0), P(-1, 1, 0), P(1, 1, 0))
+    wall = bilinear(P(1, -1, 0), P(1, 1, 0), P(1, -1, 1), P(1, 1, 1))
+    strip = bilinear(P(0.1, -1, 0.5), P(0.3, -1, 0.5), P(0.1, 1, 0.5), P(0.3, 1, 0.5))
+    st = scene_of(SpecularObject("blocked", [Patch("floor", 0, surface=floor),
+                                             Patch("wall", 1, surface=wall),
+                                             Patch("strip", 2, surface=strip)],
+                                 ObjectMaterial(kind="mirror")))
+    return st, bake(st, BakeParams(viewpoint_depth=2, direction_depth=4),
+                    region=top_cells(2, 0.25, 0.75), workers=1)
+
+
 def test_glass_sphere_rays_are_solved_exactly(ball):
     """Two refractions on one patch: nearly every hit is solved, each exactly as traced."""
     st, tree = ball
@@ -146,11 +161,11 @@ def test_glass_sphere_rays_are_solved_exactly(ball):
     assert np.all(ex.events[solved] == 2)
 
 
-@pytest.mark.parametrize("name", ["slab", "corner"])
+@pytest.mark.parametrize("name", ["slab", "corner", "blocked"])
 def test_solved_paths_are_the_traced_paths(name, request):
-    """Paths over several patches, with total internal reflections (slab) or a second
-    reflection (corner): the solved rays are exact, the rest are traced, none answered by
-    another path; and both kinds occur."""
+    """Paths over several patches, with total internal reflections (slab), a second reflection
+    (corner) or a patch in the way of some rays' samples' paths (blocked): the solved rays are
+    exact, the rest are traced, none answered by another path; and both kinds occur."""
     st, tree = request.getfixturevalue(name)
     o, d = down_rays(st, 4000, 2, (0.3, 0.7), 1.5)
     res, ans, ex = answers(st, tree, o, d)

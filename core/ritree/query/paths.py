@@ -4,9 +4,10 @@ A ray that the baked-error tolerance (or path identity) refuses usually takes th
 its samples: the same patches, in the same order, with the same reflections, refractions and
 total internal reflections. The tree stores each hit sample's path seeds (tree layout 6: the
 first hit's normalized patch parameters and those of the next RECORDED_EVENTS events), so the
-ray is solved event by event along the path of its nearest sample of its class: Newton on the
-patch the path visits from that sample's parameters there (``trace.polish``), each event's
-kind decided by the law at the solved point. The answer is kept only where
+ray is solved event by event along the path of its nearest sample of its class (then of the
+nearest with another path, CANDIDATE_PATHS in all): Newton on the patch the path visits from
+that sample's parameters there (``trace.polish``), each event's kind decided by the law at the
+solved point. The answer is kept only where
 
 - every event converged near its seed (``CHAIN_MAX_MOVE_REL``, ``CHAIN_MOVE_PER_OFFSET``,
   ``CHAIN_MAX_TURN_DEG``),
@@ -16,8 +17,9 @@ kind decided by the law at the solved point. The answer is kept only where
 - no segment of the chain, from the ray's origin to its first hit and between consecutive hits,
   meets the object in between (the fine triangle proxy, ``trace.proxy``: the solver found *a*
   crossing of each patch, this says it is the nearest),
-- and the last ray leaves the object (one exact intersect of it); a trapped sample's path is the
-  ray's only with all max_events events solved, and the ray is then trapped too.
+- and the last ray leaves the object (the proxy again; the exact tracer where that ray leaves
+  near the tangent plane); a trapped sample's path is the ray's only with all max_events
+  events solved, and the ray is then trapped too.
 
 The others are traced.
 """
@@ -43,49 +45,58 @@ from .sets import N_CORNERS, N_DQ, SET_CORNERS
 CHAIN_MAX_MOVE_REL = 5e-2
 CHAIN_MOVE_PER_OFFSET = 4.0
 CHAIN_MAX_TURN_DEG = 30.0
+# A solved ray leaving its last hit at a sine below this (with the surface) is checked for
+# another hit by the exact tracer, not the proxy: its untested stretch would exceed ~5 times
+# the proxy's deviation.
+ESCAPE_EXACT_SINE = 0.2
+# Distinct sample paths tried per ray (the heaviest sample's first).
+CANDIDATE_PATHS = 2
 # Rays refused for these reasons are solved along a sample's path before they are traced.
 SOLVABLE = (WHY_TOLERANCE, WHY_PATH)
 
 
 def solve_paths(q, b) -> None:
-    """Answer (SOLVED) the rays refused for SOLVABLE reasons whose exact path is their nearest
-    sample's of their class (the heaviest of the 16 under bilinear weights at both levels)."""
+    """Answer (SOLVED) the rays refused for SOLVABLE reasons whose exact path is one of their
+    samples' of their class: tried in turn along the paths of the heaviest such sample (bilinear
+    weights at both levels) and of the heaviest one with another path, up to CANDIDATE_PATHS."""
     rays = np.flatnonzero((b.ans == TRACED) & np.isin(b.why, SOLVABLE))
     if len(rays) == 0 or b.loc is None or b.loc_pc is None:
         return
     with b.clock("paths"):
         row = np.full(len(b.o), -1)
         row[b.loc.ray] = np.arange(len(b.loc))
-        m = row[rays]
-        keep = m >= 0
-        rays, m = rays[keep], m[keep]
-        pc = b.loc_pc[m]
+        rays = rays[row[rays] >= 0]
+        loc = b.loc.take(row[rays])
+        pc = b.loc_pc[row[rays]]
         keep = pc >= 0
-        rays, m, pc = rays[keep], m[keep], pc[keep]
-        sid, vp = nearest_of_class(q, b.loc.take(m), pc)
-        keep = sid >= 0
-        rays, sid, vp = rays[keep], sid[keep], vp[keep]
-        if len(rays):
-            entry = b.o[rays] + q.st.box_entry(b.o[rays], b.d[rays])[:, None] * b.d[rays]
-            offset = np.linalg.norm(entry - q.tree.vp_pos[vp], axis=1)
-            chain(q, b, rays, sid, CHAIN_MAX_MOVE_REL * q.tree.diag
+        rays, loc, pc = rays[keep], loc.take(keep), pc[keep]
+        ids, w = sample_weights(q, loc, pc)
+        entry = b.o[rays] + q.st.box_entry(b.o[rays], b.d[rays])[:, None] * b.d[rays]
+        for _ in range(CANDIDATE_PATHS):
+            best = np.argmax(w, axis=1)
+            k = np.flatnonzero(w[np.arange(len(w)), best] >= 0)
+            if len(k) == 0:
+                break
+            sid = ids[k, best[k]]
+            vp = q.tree.vp_forest.corner[loc.vnode[k], best[k] // N_CORNERS]
+            offset = np.linalg.norm(entry[k] - q.tree.vp_pos[vp], axis=1)
+            chain(q, b, rays[k], sid, CHAIN_MAX_MOVE_REL * q.tree.diag
                   + CHAIN_MOVE_PER_OFFSET * offset)
+            # the next candidate: another path, for the rays still traced
+            tried = np.full(len(w), -1, np.int64)
+            tried[k] = q.table.tree[sid]
+            w[q.table.tree[ids] == tried[:, None]] = -1.0
+            w[b.ans[rays] != TRACED] = -1.0
 
 
-def nearest_of_class(q, loc, pc):
-    """((n,) the sample of class ``pc`` (trapped or not) of the located rays ``loc`` with the
-    largest bilinear weight at the viewpoint and direction levels (-1: none), (n,) its
-    viewpoint)."""
+def sample_weights(q, loc, pc):
+    """(ids (n, 16), weights (n, 16)) of the located rays' ``loc`` samples: the bilinear weight
+    of each at the viewpoint and direction levels, -1 where its class is not ``pc``."""
     ids = q.tree.dir_forest.corner[loc.leaf].reshape(-1, SET_CORNERS)
     w_vp = _bilinear(loc.alpha, loc.beta)                          # (n, 4) per DQ
     w_dir = np.stack([_bilinear(loc.lx[:, k], loc.ly[:, k]) for k in range(N_DQ)], axis=1)
     w = (w_vp[:, :, None] * w_dir).reshape(-1, SET_CORNERS)
-    usable = q.table.cls[ids] == pc[:, None]
-    w = np.where(usable, w, -1.0)
-    best = np.argmax(w, axis=1)
-    sid = ids[np.arange(len(ids)), best]
-    vp = q.tree.vp_forest.corner[loc.vnode, best // N_CORNERS]
-    return np.where(w[np.arange(len(ids)), best] >= 0, sid, -1), vp
+    return ids, np.where(q.table.cls[ids] == pc[:, None], w, -1.0)
 
 
 def _bilinear(x, y) -> np.ndarray:
@@ -154,12 +165,30 @@ def chain(q, b, rays, sid, max_move) -> None:
     null = tab.null[sid[good]]
     out = good[~null]
     if len(out):
-        again = tracer.intersect(cur_o[out], cur_d[out], tmin=floor[out])
-        good = np.concatenate([good[null], out[~again.hit]])
+        last = nrms[out, n_ev[out] - 1]
+        good = np.concatenate([good[null], out[~_hits_again(q, cur_o[out], cur_d[out], last)]])
     null = tab.null[sid[good]]
     cur_d[good[null]] = 0.0
     _answer(q, b, rays[good], first.take(good), cur_o[good], cur_d[good], null,
             n_ev[good], h[good].astype(np.uint32), fresnel[good], refl_dir[good])
+
+
+def _hits_again(q, o, d, n) -> np.ndarray:
+    """(n,) bool: whether the rays leaving surface points ``o`` along ``d`` (normals ``n``)
+    meet the object again: the proxy decides, except for rays leaving within ESCAPE_EXACT_SINE
+    of the tangent plane (the proxy's untested stretch would be long), which the exact tracer
+    decides."""
+    sine = np.abs(np.einsum("ij,ij->i", d, n))
+    grazing = sine < ESCAPE_EXACT_SINE
+    again = np.zeros(len(o), bool)
+    g = np.flatnonzero(grazing)
+    if len(g):
+        floor = np.full(len(g), SECONDARY_T_MIN_REL * q.st.tracer.diag)
+        again[g] = q.st.tracer.intersect(o[g], d[g], tmin=floor).hit
+    r = np.flatnonzero(~grazing)
+    if len(r):
+        again[r] = q.proxy.crossed(o[r], d[r], np.full(len(r), np.inf), n[r])
+    return again
 
 
 def _crossed(q, o, d, pts, nrms, dirs, n_ev) -> np.ndarray:
