@@ -52,6 +52,7 @@ def _query_options(args):
                         max_error_deg=None if args.max_error < 0 else args.max_error,
                         path_identity=args.path_identity,
                         many_classes=args.many_classes.replace("-", "_"),
+                        solve_paths=args.solve_paths == "on",
                         mirror_rays=args.mirror_rays).validate()
 
 

@@ -231,6 +231,22 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                                                 "different paths through the object (hit "
                                                 "different surfaces in a different order). "
                                                 "Safer at edges, more rays traced")
+    use_solve_paths: BoolProperty(name="Solve along sample paths", default=QUERY.solve_paths,
+                                  description="A ray that Max error or Path identity would "
+                                              "trace is first solved exactly along the path "
+                                              "of its nearest sample (the same surfaces in "
+                                              "the same order); only a ray that leaves that "
+                                              "path is traced. Off: trace every such ray")
+    many_classes: EnumProperty(
+        name="More than two classes",
+        items=[("FIRST_HIT", "First hit", "Take the class of the ray's exact first hit "
+                                          "(a ray that misses the object is answered "
+                                          "exactly). Fewer rays traced"),
+               ("TRACE", "Trace", "Trace the ray (the paper's rule)")],
+        default=QUERY.many_classes.upper(),
+        description="A ray whose nearby samples first hit more than two equivalence "
+                    "classes (see Equivalence Classes): take the class of its exact first "
+                    "hit, or trace it")
     # ---- viewpoint selection
     bake_for_cameras: BoolProperty(name="Bake for scene cameras", default=True,
                                    description="Bake only what the scene's cameras see. Off: "
@@ -363,7 +379,8 @@ BAKE_KEYS = ("viewpoint_depth", "viewpoint_refine", "finest_min_traced", "direct
              "bake_for_cameras", "use_frame_range")
 QUERY_KEYS = ("policy", "use_angle_threshold", "angle_deg", "use_distance_threshold", "distance",
               "use_extrapolation", "extrapolation", "use_null_interp", "use_max_error",
-              "max_error_deg", "use_path_identity", "use_mirror_normal", "use_mirror_newton")
+              "max_error_deg", "use_path_identity", "use_solve_paths", "many_classes",
+              "use_mirror_normal", "use_mirror_newton")
 
 
 def query_options(obj) -> dict:
@@ -376,6 +393,8 @@ def query_options(obj) -> dict:
             "null_interp": bool(p.use_null_interp),
             "max_error_deg": float(p.max_error_deg) if p.use_max_error else None,
             "path_identity": bool(p.use_path_identity),
+            "solve_paths": bool(p.use_solve_paths),
+            "many_classes": p.many_classes.lower(),
             "mirror_rays": ("newton" if p.use_mirror_newton else "reflect")
             if p.use_mirror_normal else "interpolate"}
 

@@ -130,6 +130,8 @@ def draw_render_rules(layout, p) -> None:
     col = layout.column(heading="Rays")
     col.prop(p, "use_null_interp")
     col.prop(p, "use_path_identity")
+    col.prop(p, "use_solve_paths")
+    layout.prop(p, "many_classes")
     col = layout.column(heading="Mirrors")
     col.prop(p, "use_mirror_normal")
     sub = col.row()

@@ -15,7 +15,7 @@ from ..render.frame import (NOT_HANDED, ExactAnswerer, TreeAnswerer, join_shares
                             share_size)
 from ..render.interpolated import psnr, query_own_cpu
 from ..ritree import tree as ritree
-from ..ritree.answers import EXTRA_S, OUTSIDE, is_interpolated, is_traced
+from ..ritree.answers import EXTRA_S, OUTSIDE, SOLVED, is_interpolated, is_traced
 from ..ritree.bake import bake
 from ..ritree.query import DEFAULT_MAX_ERROR_DEG, TreeQuery
 from ..ritree.region import region_for_cameras
@@ -69,6 +69,7 @@ def measure_pass(st, tree, cam, size, options, order=0) -> dict:
     cand = answers != NOT_HANDED
     objmask = fx.object_mask
     traced = is_traced(answers)
+    solved = answers == SOLVED
     beyond = np.concatenate([_beyond(p) for p in parts])
     lookups = int(np.sum(cand & (answers != OUTSIDE)))
     extra = int(np.sum(answers == EXTRA_S))
@@ -77,6 +78,7 @@ def measure_pass(st, tree, cam, size, options, order=0) -> dict:
             "traced_mask": traced.reshape(size, size),
             "rays_traced": int(traced.sum()), "object_rays": int(cand.sum()),
             "traced_fraction": float(traced[objmask].mean()) if objmask.any() else 0.0,
+            "solved_fraction": float(solved[objmask].mean()) if objmask.any() else 0.0,
             "beyond_fraction": float(beyond[objmask].mean()) if objmask.any() else 0.0,
             "object_hits": int(s_x["object_hits"]),
             "interpolated": int(is_interpolated(answers).sum()),
@@ -145,7 +147,7 @@ def _exact_row(all_p) -> dict:
     ex_tot = [p["s_x"]["total_cpu_s"] for p in all_p]
     return {"rays_traced": first["object_rays"], "object_rays": first["object_rays"],
             "object_hits": first["object_hits"], "interpolated": 0,
-            "traced_fraction": 1.0 if first["object_rays"] else 0.0,
+            "traced_fraction": 1.0 if first["object_rays"] else 0.0, "solved_fraction": 0.0,
             "beyond_fraction": 0.0,
             "object_cpu_s": median(ex_obj), "total_cpu_s": median(ex_tot),
             "object_cpu_s_all": ex_obj, "total_cpu_s_all": ex_tot,
@@ -175,6 +177,7 @@ def _interp_row(ps) -> dict:
             "object_hits": int(p["s_i"]["object_hits"]),
             "interpolated": p["interpolated"],
             "traced_fraction": p["traced_fraction"],
+            "solved_fraction": p["solved_fraction"],
             "beyond_fraction": p["beyond_fraction"],
             "object_cpu_s": median(io), "total_cpu_s": median(it),
             "object_cpu_s_all": io, "total_cpu_s_all": it,

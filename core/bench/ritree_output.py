@@ -65,7 +65,7 @@ def replot(out) -> list:
 
 
 TABLE_CSV = ("scene", "view", "row", "label", "rays_traced", "object_rays", "traced_fraction",
-             "beyond_fraction",
+             "solved_fraction", "beyond_fraction",
              "object_cpu_s", "total_cpu_s", "object_speedup", "total_speedup",
              "query_own_cpu_s", "query_own_fraction", "pairs",
              "newton_iters", "fallback_pairs", "exact_first_hits", "exact_mirror_hits",
@@ -80,7 +80,8 @@ SWEEP_CSV = ("scene", "view", "sweep", "viewpoint_depth", "direction_depth", "to
              "mirror_rays",
              "bake_s", "bake_cpu_s",
              "cache_bytes", "tree_samples", "bake_rays", "rays_traced", "object_rays",
-             "traced_fraction", "object_cpu_s", "total_cpu_s", "exact_object_cpu_s",
+             "traced_fraction", "solved_fraction", "object_cpu_s", "total_cpu_s",
+             "exact_object_cpu_s",
              "exact_total_cpu_s", "object_speedup", "total_speedup", "pairs", "newton_iters",
              "samples_gathered", "angle_mean_deg", "angle_p99_deg", "angle_max_deg", "psnr_db",
              "max_pixel_diff")
@@ -138,6 +139,12 @@ def write_outputs(result, out: Path, plots=True) -> list:
     return written
 
 
+def _pct(v):
+    """A fraction in percent, one decimal; "-" where the row has none (results.json of a riray
+    that did not solve rays along sample paths, read by --replot)."""
+    return "-" if v is None else f"{100 * v:.1f}"
+
+
 def _fmt(v, f="{:.2f}"):
     if v is None:
         return "-"
@@ -162,18 +169,19 @@ def tables_markdown(result) -> str:
         r0 = rows[0]
         lines += [f"**{scene}** (tree: viewpoint depth {r0['viewpoint_depth']}, direction depth "
                   f"{r0['direction_depth']}, tolerance {r0['tolerance']:g} deg)", "",
-                  "| view | method | rays traced | traced % of object | traced or beyond "
+                  "| view | method | rays traced | traced % of object | solved along a "
+                  "sample's path, % of object | traced or beyond "
                   f"{DEFAULT_MAX_ERROR_DEG:g} deg, % of object | object-only CPU s "
                   "| total CPU s | object-only speed-up | query's own work, % of exact "
                   "object-only | pairs | Newton it | samples gathered | mean / p99 / max err deg "
                   "| wrong hit / null | PSNR dB |",
-                  "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                  "|---|---|" + "---:|" * 14]
         for r in rows:
             err = "-" if r["row"] == "exact" else err3(r)
             own = "-" if r["row"] == "exact" else f"{100 * r['query_own_fraction']:.1f}"
             lines.append(
                 f"| {r['view']} | {r['label']} | {r['rays_traced']:,} of {r['object_rays']:,} | "
-                f"{100 * r['traced_fraction']:.1f} | "
+                f"{100 * r['traced_fraction']:.1f} | {_pct(r.get('solved_fraction'))} | "
                 f"{100 * (r['traced_fraction'] + r['beyond_fraction']):.1f} | "
                 f"{r['object_cpu_s']:.2f} | "
                 f"{r['total_cpu_s']:.2f} | {r['object_speedup']:.2f}x | {own} | {r['pairs']:,} | "
@@ -212,9 +220,9 @@ def sweeps_markdown(rows) -> str:
     for scene in dict.fromkeys(r["scene"] for r in rows):
         lines += [f"**{scene}** ({rows[0]['view']} view)", "",
                   "| sweep | vp | dir | tol | angle | dist | extrap | max err | bake s | "
-                  "cache MB | traced % | object-only s (exact) | total s (exact) | mean / p99 / "
-                  "max err deg | PSNR dB | max diff |",
-                  "|---" + "|---:" * 15 + "|"]
+                  "cache MB | traced % | solved % | object-only s (exact) | total s (exact) | "
+                  "mean / p99 / max err deg | PSNR dB | max diff |",
+                  "|---" + "|---:" * 16 + "|"]
         for r in (r for r in rows if r["scene"] == scene):
             lines.append(
                 f"| {r['sweep']} | {r['viewpoint_depth']} | {r['direction_depth']} | "
@@ -225,6 +233,7 @@ def sweeps_markdown(rows) -> str:
                 f"{' reflect' if r.get('mirror_rays') == 'reflect' else ''} | "
                 f"{r['bake_s']:.1f} | "
                 f"{r['cache_bytes'] / 1e6:.2f} | {100 * r['traced_fraction']:.1f} | "
+                f"{_pct(r.get('solved_fraction'))} | "
                 f"{r['object_cpu_s']:.2f} ({r['exact_object_cpu_s']:.2f}) | "
                 f"{r['total_cpu_s']:.2f} ({r['exact_total_cpu_s']:.2f}) | "
                 f"{err3(r)} | {_fmt(r['psnr_db'], '{:.1f}')} | {r['max_pixel_diff']:.2f} |")

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..parallel import map_chunks, workers_default
-from ..ritree.answers import ANSWER_NAMES, WHY_NAMES, is_traced
+from ..ritree.answers import ANSWER_NAMES, SOLVED, WHY_NAMES, is_traced
 from ..ritree.query import TRACING_STAGES, TreeQuery
 from ..scene.camera import Shot, check_image_size
 from ..trace.scene_tracer import SceneTracer
@@ -101,6 +101,8 @@ def _develop(film: Film, a: int, b: int, cs) -> _TreePart:
     hit[tree.hit] = 1.0
     traced = np.zeros(n)
     traced[tree.handed] = is_traced(tree.answer.answer)
+    solved = np.zeros(n, bool)
+    solved[tree.handed] = tree.answer.answer == SOLVED
     measured = np.isfinite(cs.err_deg)
     filtered = {"color": tree.color}
     if cs.exact is not None:
@@ -108,8 +110,10 @@ def _develop(film: Film, a: int, b: int, cs) -> _TreePart:
     box = {"object": hit, "traced": traced, "measured": measured,
            "err": np.where(measured, cs.err_deg, 0.0)}
     counts = {"answer": np.bincount(tree.answer.answer, minlength=len(ANSWER_NAMES)),
-              "why": np.bincount(tree.answer.why, minlength=len(WHY_NAMES)),
+              "why": np.bincount(tree.answer.why[is_traced(tree.answer.answer)],  # not the
+                                 minlength=len(WHY_NAMES)),     # solved rays' refusal reasons
               "traced": int(traced.sum()), "traced_hit": int(traced[tree.hit].sum()),
+              "solved_hit": int(solved[tree.hit].sum()),
               "hit": len(tree.hit)}
     return _TreePart(film.develop(a, b, filtered, box), tree.stats,
                      cs.exact.stats if cs.exact is not None else {}, counts,
@@ -129,6 +133,7 @@ def _tree_summary(counts: dict, si: dict, shares: int, wall_s: float) -> dict:
     n_obj = counts["hit"]
     return {"object_pixels": n_obj, "rays_traced": counts["traced"],
             "traced_fraction_of_object": round(counts["traced_hit"] / n_obj if n_obj else 0.0, 5),
+            "solved_fraction_of_object": round(counts["solved_hit"] / n_obj if n_obj else 0.0, 5),
             "interp_object_only_cpu_s": round(si["object_cpu_s"], 4),
             "interp_total_cpu_s": round(si["total_cpu_s"], 4),
             "interp_object_only_wall_s": round(si["object_wall_s"], 4),

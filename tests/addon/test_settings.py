@@ -128,6 +128,9 @@ def test_defaults_are_cores(bl):
     want = asdict(params.BakeParams())
     assert set(want) - set(got) == {"viewpoint_tolerance_deg", "pad"}     # not in the add-on
     _same({k: got[k] for k in want if k in got}, {k: v for k, v in want.items() if k in got})
+    # every QueryOptions field but these is a setting, so its default is checked here too
+    assert set(asdict(query.QueryOptions())) - set(got["query"]) == \
+        {"threshold_on", "threshold_leaves", "fallback_angle_deg"}
     _same(asdict(query.QueryOptions(**got["query"])), asdict(query.QueryOptions()))
     assert bl.properties.QUALITY == {k.upper(): v for k, v in params.QUALITY_PRESETS.items()}
     assert {k: got[k] for k in params.QUALITY_PRESETS["default"]} == \
@@ -136,6 +139,31 @@ def test_defaults_are_cores(bl):
     scene = bpy.context.scene.riray
     assert (scene.samples, scene.max_events) == \
         (camera.Shot().samples, model.RenderSettings().max_events)
+
+
+def test_path_and_class_rules_reach_query_options(bl):
+    """"Solve along sample paths" and "More than two classes" reach QueryOptions (solve_paths,
+    many_classes), each without changing the other rules."""
+    import importlib
+    from dataclasses import asdict
+    bpy = bl.bpy
+    query = importlib.import_module(bl.addon.__name__.rpartition(".")[0] + ".core.ritree.query")
+    bpy.ops.wm.read_homefile(use_empty=True)
+    bpy.ops.surface.primitive_nurbs_surface_sphere_add(radius=0.5)
+    obj = bpy.context.active_object
+    p = obj.riray
+
+    def options():
+        return asdict(query.QueryOptions(**bl.properties.query_options(obj)).validate())
+    default = options()
+    assert (default["solve_paths"], default["many_classes"]) == (True, "first_hit")
+    p.use_solve_paths = False
+    assert options() == {**default, "solve_paths": False}
+    p.many_classes = "TRACE"
+    assert options() == {**default, "solve_paths": False, "many_classes": "trace"}
+    p.use_solve_paths = True
+    p.many_classes = "FIRST_HIT"
+    assert options() == default
 
 
 def test_quality_numbers_of_older_files(bl):

@@ -93,7 +93,8 @@ ADVANCED = ["viewpoint_depth", "direction_depth", "min_direction_depth", "tolera
             "tolerance_dist_percent", "search_steps", "viewpoint_refine", "finest_min_traced"]
 RULES = ["policy", "use_max_error", "max_error", "use_angle_threshold", "angle",
          "use_distance_threshold", "distance_percent", "use_extrapolation", "extrapolation",
-         "use_null_interp", "use_path_identity", "use_mirror_normal", "use_mirror_newton"]
+         "use_null_interp", "use_path_identity", "use_solve_paths", "many_classes",
+         "use_mirror_normal", "use_mirror_newton"]
 
 
 def _draw(bpy, panel, obj):

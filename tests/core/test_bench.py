@@ -43,6 +43,12 @@ def test_outputs_exist(bench):
     assert not (bench / "trees").exists()          # trees are dropped unless --keep-trees
 
 
+def refused_of(row) -> float:
+    """The share of the object's rays a CSV row's rules refused: traced, or solved exactly
+    along a sample's path."""
+    return float(row["traced_fraction"]) + float(row["solved_fraction"])
+
+
 def test_tables_consistent(bench):
     rows = _csv(bench / "tables.csv")
     res = json.loads((bench / "results.json").read_text())
@@ -82,23 +88,26 @@ def test_tables_consistent(bench):
         assert (int(t["viewpoint_depth"]), int(t["direction_depth"]), int(t["viewpoint_refine"])) \
             == (vp, dd, vr) != (int(ex["viewpoint_depth"]), int(ex["direction_depth"]),
                                 int(ex["viewpoint_refine"]))
-        # the tolerance traces every ray the same rules without it trace, and more; what those
-        # rules trace or answer beyond the tolerance (the floor) it traces or answers so too
+        # the tolerance refuses every ray the same rules without it trace, and more, and traces
+        # them or solves them exactly along a sample's path; what those rules trace or answer
+        # beyond the tolerance (the floor) it refuses or answers so too
         rules, tol = rs["deeper_rules"], rs["deeper"]
-        assert int(rules["rays_traced"]) <= int(tol["rays_traced"])
+        assert float(rules["solved_fraction"]) == 0.0     # only refused rays are solved
+        refused = refused_of(tol)
+        assert float(rules["traced_fraction"]) <= refused + 1e-9
         assert 0.0 <= float(rules["beyond_fraction"]) \
             <= 1.0 - float(rules["traced_fraction"]) + 1e-9
         assert float(rules["traced_fraction"]) + float(rules["beyond_fraction"]) \
-            <= float(tol["traced_fraction"]) + float(tol["beyond_fraction"]) + 1e-9
-        gap += int(tol["rays_traced"]) - int(rules["rays_traced"])
+            <= refused + float(tol["beyond_fraction"]) + 1e-9
+        gap += refused - float(rules["traced_fraction"])
         beyond += float(rules["beyond_fraction"])
         # the angle threshold only ever adds traced rays to the no-threshold row
         assert int(rs["interp_angle"]["rays_traced"]) >= int(rs["interp"]["rays_traced"])
-        # exact mirror hits (the default) only ever answer rays the tolerance would trace with
-        # mirror rays from the interpolated normal
+        # exact mirror hits (the default) only ever answer rays the tolerance would refuse
+        # (trace or solve along a sample's path) with mirror rays from the interpolated normal
         for newton, reflect in (("interp_tol", "interp_reflect"), ("deeper", "deeper_reflect")):
             if reflect in rs:
-                assert int(rs[newton]["rays_traced"]) <= int(rs[reflect]["rays_traced"])
+                assert refused_of(rs[newton]) <= refused_of(rs[reflect]) + 1e-9
                 assert int(rs[newton]["exact_mirror_hits"]) > 0 \
                     == int(rs[reflect]["exact_mirror_hits"])
     # the tolerance traces rays the rules alone answer, and those rules answer some beyond it
@@ -140,12 +149,13 @@ def test_sweeps_consistent(bench):
         # without any threshold fewer rays are traced than with the tightest angle threshold
         ang = {r["angle"]: int(r["rays_traced"]) for r in rs if r["sweep"] == "angle"}
         assert ang[""] <= min(v for k, v in ang.items() if k)
-        # a tighter --max-error never interpolates a worse ray, and traces at least as many
+        # a tighter --max-error never interpolates a worse ray, and refuses (traces or solves
+        # along a sample's path) at least as many
         tol = sorted(((float(r["max_error"]), r) for r in rs if r["sweep"] == "max_error"),
                      key=lambda x: -x[0])
         for (_, a), (_, b) in zip(tol, tol[1:]):
             assert float(b["angle_max_deg"] or 0) <= float(a["angle_max_deg"] or 0)
-            assert int(b["rays_traced"]) >= int(a["rays_traced"])
+            assert refused_of(b) >= refused_of(a) - 1e-9
         # the policy points share one tree
         assert len({r["tree_samples"] for r in rs if r["sweep"] in ("angle", "raytree")}) == 1
     for r in rows:

@@ -510,3 +510,22 @@ def test_query_defaults_are_query_options():
     for argv in (["render", "teapot", "--tree", "t.rit", "--out", "x"],
                  ["trace-rays", "teapot", "--rays", "r.npy", "--out", "x"], ["demo"]):
         assert _query_options(build_parser().parse_args(argv)) == QueryOptions(), argv
+
+
+def test_path_and_class_flags_reach_query_options():
+    """--solve-paths off and --many-classes trace reach QueryOptions (solve_paths False,
+    many_classes "trace"); each flag alone changes only its field."""
+    from dataclasses import replace
+    from riray.cli import _query_options
+    from riray.ritree.query import QueryOptions
+
+    def opts(*flags, cmd=("render", "teapot", "--tree", "t.rit", "--out", "x")):
+        return _query_options(build_parser().parse_args([*cmd, *flags]))
+    assert opts("--solve-paths", "off") == replace(QueryOptions(), solve_paths=False)
+    assert opts("--solve-paths", "on") == QueryOptions()
+    assert opts("--many-classes", "trace") == replace(QueryOptions(), many_classes="trace")
+    assert opts("--many-classes", "first-hit") == QueryOptions()
+    both = opts("--solve-paths", "off", "--many-classes", "trace",
+                cmd=("trace-rays", "teapot", "--rays", "r.npy", "--out", "x"))
+    assert (both.solve_paths, both.many_classes) == (False, "trace")
+    assert opts("--solve-paths", "off", cmd=("demo",)).solve_paths is False
