@@ -4,7 +4,8 @@ RI-Tree benchmark share it).
 Each share is rendered twice in the same process, once through the RI-Tree and once exactly,
 the order alternating from share to share, so the *object-only* times compare the same rays
 under the same machine load (paper, section 6). The angular error is measured on the rays the
-tree interpolated and the exact tracer also finds leaving the object.
+tree interpolated or solved along a sample's path and the exact tracer also finds leaving the
+object.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..ritree.answers import is_interpolated
+from ..ritree.answers import SOLVED, is_interpolated
 from ..ritree.interp import angle_between
 from .frame import ShareResult, shade_share
 
@@ -24,7 +25,7 @@ class ComparedShare:
     tree: ShareResult
     exact: ShareResult | None
     err_deg: np.ndarray      # (n,) angle between tree and exact output rays, NaN where none
-    interpolated: np.ndarray  # (handed,) bool: measured rays (answered by interpolation)
+    interpolated: np.ndarray  # (handed,) bool: measured rays (interpolated or solved)
     hit_disagree: int        # handed rays answered hit / miss against the exact answer
     null_disagree: int       # handed rays answered null / not null against the exact answer
 
@@ -49,7 +50,8 @@ def compare_share(st, origins, dirs, tree_answerer, exact_answerer=None,
         return ComparedShare(tree, None, err, np.zeros(len(tree.handed), bool), 0, 0)
     exact = done[id(exact_answerer)]
     ri, rx = tree.answer.rays, exact.answer.rays
-    interp = is_interpolated(tree.answer.answer) & ri.hit & rx.hit & ~rx.null
+    ans = tree.answer.answer
+    interp = (is_interpolated(ans) | (ans == SOLVED)) & ri.hit & rx.hit & ~rx.null & ~ri.null
     err[tree.handed[interp]] = np.degrees(angle_between(ri.out_dir[interp], rx.out_dir[interp]))
     hit_d, null_d = disagreements(ri, rx)
     return ComparedShare(tree, exact, err, interp, hit_d, null_d)

@@ -110,8 +110,8 @@ def _develop(film: Film, a: int, b: int, cs) -> _TreePart:
     box = {"object": hit, "traced": traced, "measured": measured,
            "err": np.where(measured, cs.err_deg, 0.0)}
     counts = {"answer": np.bincount(tree.answer.answer, minlength=len(ANSWER_NAMES)),
-              "why": np.bincount(tree.answer.why[is_traced(tree.answer.answer)],  # not the
-                                 minlength=len(WHY_NAMES)),     # solved rays' refusal reasons
+              "why": np.bincount(tree.answer.why[is_traced(tree.answer.answer)],
+                                 minlength=len(WHY_NAMES)),
               "traced": int(traced.sum()), "traced_hit": int(traced[tree.hit].sum()),
               "solved_hit": int(solved[tree.hit].sum()),
               "hit": len(tree.hit)}

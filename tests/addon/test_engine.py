@@ -259,14 +259,16 @@ def test_damaged_cache_falls_back_to_tracing(bl, tmp_path):
 def test_max_error_and_path_identity_trace_through_baked_tree(bl, tmp_path):
     """The render-time tolerance (Max error), Path identity and the mirror rules reach core's
     query: with a tolerance far below any error the bake measured and mirror rays from the
-    interpolated normal, nearly every object pixel is traced (the Traced pass and LAST_RENDER
-    agree); with exact mirror hits (the default) most of those are answered by Newton instead;
-    with the tolerance off far fewer are traced; path identity only adds traced rays; none of
-    it needs a re-bake."""
+    interpolated normal and no path solving, nearly every object pixel is traced (the Traced
+    pass and LAST_RENDER agree); with exact mirror hits (the default) most of those are answered
+    by Newton instead, and with path solving (the default) some of the rest are solved along a
+    sample's path; with the tolerance off far fewer are traced; path identity only adds traced
+    rays; none of it needs a re-bake."""
     bpy = bl.bpy
     obj = baked_scene(bl, tmp_path, "tree_tolerance.blend")
     p = obj.riray
     p.use_angle_threshold = False
+    p.use_solve_paths = False
 
     def render():
         assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
@@ -303,9 +305,12 @@ def test_max_error_and_path_identity_trace_through_baked_tree(bl, tmp_path):
     p.use_mirror_newton = True
     assert bl.cache.tree_status(obj, bpy.context.evaluated_depsgraph_get(),
                                 memo=False)["state"] == "fresh"       # no re-bake needed
+    p.use_solve_paths = True
+    tight_solved = render()
     assert off < 0.5 and off <= path            # here 0.11 / 0.11 / 1.0
     assert tight >= 0.98
     assert tight_newton < 0.5                   # here 0.18
+    assert tight_solved < tight_newton          # here 0.12
 
 
 def exr_attributes(path) -> dict:

@@ -238,4 +238,5 @@ def _answer(q, b, rows, first: PatchHit, oo, od, null, events, tree_hash, fresne
     res.fresnel[rows], res.refl_dir[rows] = fresnel, refl_dir
     res.uv[rows] = q.st.tracer.normalized_uv(first.patch, first.u, first.v)
     b.ans[rows] = SOLVED
+    b.why[rows] = 0
     b.solved += len(rows)
