@@ -80,8 +80,14 @@ class PatchTracer:
         """All patches' Bezier pieces in one index space (``piece_base[patch]`` + the patch's
         own piece index): their parameter rectangles and patches, and their nets stacked per degree
         (``piece_nets[piece_group[k]][piece_local[k]]``) with their ``second_derivative_bounds``
-        (``piece_bounds``, the same layout), for Newton runs on known pieces."""
+        (``piece_bounds``, the same layout), for Newton runs on known pieces; and each patch's
+        piece breakpoints for finding the piece of a parameter: patch p's distinct piece starts
+        in u (column 0) and in v (column 1), ascending, are ``piece_breaks[piece_break_start[p,
+        c]:][:piece_break_count[p, c]]`` (no breakpoints for a mesh patch)."""
         self.piece_base = np.full(len(self.object.patches), -1, np.int64)
+        self.piece_break_start = np.zeros((len(self.object.patches), 2), np.int64)
+        self.piece_break_count = np.zeros((len(self.object.patches), 2), np.int64)
+        breaks = []
         rect, group, local, owner, nets, degrees = [], [], [], [], [], {}
         base = 0
         for pid, pcs in self.pieces.items():
@@ -96,10 +102,15 @@ class PatchTracer:
             group.append(np.full(len(pcs.ctrl), g))
             local.append(start + np.arange(len(pcs.ctrl)))
             owner.append(np.full(len(pcs.ctrl), pid))
+            for c, starts in enumerate((np.unique(pcs.u0), np.unique(pcs.v0))):
+                self.piece_break_start[pid, c] = sum(len(x) for x in breaks)
+                self.piece_break_count[pid, c] = len(starts)
+                breaks.append(starts)
         self.piece_rect = np.concatenate(rect) if rect else np.zeros((0, 4))
         self.piece_group = np.concatenate(group) if group else np.zeros(0, np.int64)
         self.piece_local = np.concatenate(local) if local else np.zeros(0, np.int64)
         self.piece_patch = np.concatenate(owner) if owner else np.zeros(0, np.int64)
+        self.piece_breaks = np.concatenate(breaks) if breaks else np.zeros(0)
         self.piece_nets = [np.concatenate(x) for x in nets]
         self.piece_bounds = [second_derivative_bounds(x) for x in self.piece_nets]
 

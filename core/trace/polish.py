@@ -14,7 +14,7 @@ Units: t and distances in scene units; (u, v) normalized to the patch's domain [
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -30,26 +30,30 @@ POLISH_RUNS = 2
 @dataclass
 class Seeds:
     """What the caller knows of each ray's hit: its patch (N,), normalized parameters (N, 2),
-    an estimate of the hit point (N, 3) and of the unit normal facing the ray (N, 3); and
-    optionally second parameters (N, 2) to start from where the first find no hit (a blend
-    of parameters across a closed patch's seam lands far from both sides)."""
+    an estimate of the hit point (N, 3) and of the unit normal facing the ray (N, 3) (both
+    None: the surface's at the parameters); and optionally second parameters (N, 2) to start
+    from where the first find no hit (a blend of parameters across a closed patch's seam lands
+    far from both sides)."""
 
     patch: np.ndarray
     uvn: np.ndarray
-    point: np.ndarray
-    normal: np.ndarray
+    point: np.ndarray | None
+    normal: np.ndarray | None
     alt_uvn: np.ndarray | None = None
 
 
 def polish_hits(tracer: PatchTracer, o, d, seeds: Seeds, max_move: float, min_cos: float,
                 tmin, tmax) -> PatchHit:
     """``_polish`` from the seeds' parameters, then from their second parameters for the rays
-    still without a hit."""
+    still without a hit. Seeds without a point and normal take the surface's at the
+    parameters each run starts from (as ``surface_at``, the normal turned to face the ray),
+    from the piece lookup that starts Newton."""
     res = _polish(tracer, o, d, seeds, max_move, min_cos, tmin, tmax)
     if seeds.alt_uvn is not None:
         r = np.flatnonzero(~res.hit)
         if len(r):
-            alt = Seeds(seeds.patch[r], seeds.alt_uvn[r], seeds.point[r], seeds.normal[r])
+            alt = Seeds(seeds.patch[r], seeds.alt_uvn[r],
+                        *(None if x is None else x[r] for x in (seeds.point, seeds.normal)))
             move = np.broadcast_to(np.asarray(max_move, np.float64), res.hit.shape)[r]
             res.put(r, _polish(tracer, np.asarray(o)[r], np.asarray(d)[r], alt, move,
                                min_cos, tmin[r], tmax[r]))
@@ -72,22 +76,29 @@ def _polish(tracer: PatchTracer, o, d, seeds: Seeds, max_move: float, min_cos: f
     patch = np.asarray(seeds.patch, np.int64)
     live = np.flatnonzero(_on_nurbs(tracer, patch))
     u, v = _nurbs_uv(tracer, patch[live], np.asarray(seeds.uvn, np.float64)[live])
-    for _ in range(POLISH_RUNS):
+    k, s, t = _piece_of(tracer, patch[live], u, v)
+    if seeds.point is None:
+        P, nrm = np.zeros((n, 3)), np.zeros((n, 3))
+        P[live], nrm[live] = _surface(tracer, k, s, t, u, v)
+        nrm = np.where((np.einsum("ij,ij->i", nrm, d) > 0)[:, None], -nrm, nrm)
+        seeds = replace(seeds, point=P, normal=nrm)
+    for run in range(POLISH_RUNS):
         if len(live) == 0:
             break
-        k, s, t = _piece_of(tracer, patch[live], u, v)
+        if run:
+            k, s, t = _piece_of(tracer, patch[live], u, v)
         ok = _newton(tracer, o[live], d[live], k, s, t)
         inside = (s >= -PARAM_MARGIN) & (s <= 1 + PARAM_MARGIN) & (t >= -PARAM_MARGIN) \
             & (t <= 1 + PARAM_MARGIN)
-        rect = tracer.piece_rect[k]
+        rect = np.take(tracer.piece_rect, k, axis=0)
         u = rect[:, 0] + s * (rect[:, 1] - rect[:, 0])
         v = rect[:, 2] + t * (rect[:, 3] - rect[:, 2])
         g = np.flatnonzero(ok & inside)
         _record(tracer, o, d, live[g], k[g], s[g], t[g], u[g], v[g], res)
         # a root outside its piece: once more from it, where it lies in the patch's domain
         # (across the seam of a closed patch: parameters wrapped around)
-        dom = tracer.uv_domain[patch[live]]
-        closed = tracer.closed[patch[live]]
+        dom = np.take(tracer.uv_domain, patch[live], axis=0)
+        closed = np.take(tracer.closed, patch[live], axis=0)
         u = np.where(closed[:, 0], dom[:, 0] + np.mod(u - dom[:, 0], dom[:, 1] - dom[:, 0]), u)
         v = np.where(closed[:, 1], dom[:, 2] + np.mod(v - dom[:, 2], dom[:, 3] - dom[:, 2]), v)
         again = np.flatnonzero(ok & ~inside & (u >= dom[:, 0]) & (u <= dom[:, 1])
@@ -116,14 +127,26 @@ def keep_near(h: PatchHit, d, seeds: Seeds, max_move: float, min_cos: float) -> 
 
 
 def _piece_of(tracer, patch, u, v):
-    """(global piece index, local s, local t) of NURBS parameters (u, v) on ``patch``."""
-    k = np.empty(len(patch), np.int64)
-    s = np.empty(len(patch))
-    t = np.empty(len(patch))
-    for pid in np.unique(patch):
-        m = np.flatnonzero(patch == pid)
-        kk, s[m], t[m] = bz.nurbs_to_piece_param(tracer.pieces[int(pid)], u[m], v[m])
-        k[m] = tracer.piece_base[pid] + kk
+    """(global piece index, local s, local t) of NURBS parameters (u, v) (N,) on NURBS patches
+    ``patch`` (N,), as ``bezier.nurbs_to_piece_param`` finds them on each patch's pieces: the
+    last piece starting at or below the parameter in u and in v (the first where none does),
+    (s, t) clamped to [0, 1]. One branch-free binary search of every ray's own patch's
+    breakpoints (``PatchTracer.piece_breaks``) in u and v at once."""
+    x = np.stack([u, v], axis=1)
+    start = np.take(tracer.piece_break_start, patch, axis=0)
+    count = np.take(tracer.piece_break_count, patch, axis=0)
+    # how many of the ray's breakpoints are <= x, found in steps of descending powers of two
+    below = np.zeros_like(count)
+    n_max = int(count.max(initial=0))
+    for p in range(n_max.bit_length() - 1, -1, -1):
+        step = below + (1 << p)
+        le = np.take(tracer.piece_breaks, start + np.minimum(step, count) - 1) <= x
+        below += (le & (step <= count)) * np.int64(1 << p)
+    i = below - (below > 0)
+    k = np.take(tracer.piece_base, patch) + i[:, 0] * count[:, 1] + i[:, 1]
+    rect = np.take(tracer.piece_rect, k, axis=0)
+    s = np.clip((u - rect[:, 0]) / (rect[:, 1] - rect[:, 0]), 0.0, 1.0)
+    t = np.clip((v - rect[:, 2]) / (rect[:, 3] - rect[:, 2]), 0.0, 1.0)
     return k, s, t
 
 
@@ -137,8 +160,9 @@ def _newton(tracer, o, d, k, s, t):
         loc = tracer.piece_local[k[m]]
         nets = tracer.piece_nets[g][loc]
         ss, tt = s[m], t[m]
+        bound = np.take(tracer.piece_bounds[g], loc, axis=0)
         ok[m] = tracer.solve_newton(project_nets(nets, o[m], d[m]), nets.shape[1] - 1,
-                                    nets.shape[2] - 1, ss, tt, tracer.piece_bounds[g][loc])
+                                    nets.shape[2] - 1, ss, tt, bound)
         s[m], t[m] = ss, tt
     return ok
 
@@ -201,6 +225,6 @@ def _on_nurbs(tracer, patch) -> np.ndarray:
 def _nurbs_uv(tracer, patch, uvn):
     """NURBS parameters (u, v) of normalized parameters ``uvn`` (N, 2) on NURBS ``patch``
     (the inverse of PatchTracer.normalized_uv)."""
-    dom = tracer.uv_domain[patch]
+    dom = np.take(tracer.uv_domain, patch, axis=0)
     return (dom[:, 0] + uvn[:, 0] * (dom[:, 1] - dom[:, 0]),
             dom[:, 2] + uvn[:, 1] * (dom[:, 3] - dom[:, 2]))

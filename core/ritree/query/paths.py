@@ -31,7 +31,7 @@ import numpy as np
 from ...trace.objectfn import (REFLECT, REFRACT, SECONDARY_T_MIN_REL, TREE_HASH_SEED,
                                fresnel_dielectric, reflect, refract, tree_hash_step)
 from ...trace.patches import PatchHit
-from ...trace.polish import Seeds, polish_hits, surface_at
+from ...trace.polish import Seeds, polish_hits
 from ..answers import COL, SOLVED, TRACED, WHY_PATH, WHY_TOLERANCE
 from .sets import N_CORNERS, N_DQ, SET_CORNERS
 
@@ -127,9 +127,8 @@ def chain(q, b, rays, sid, max_move) -> None:
         act = np.flatnonzero(alive & (e < n_ev))
         if len(act) == 0:
             break
-        pt, nm, on = surface_at(tracer, patches[act, e], uvs[act, e])
-        nm = np.where((np.einsum("ij,ij->i", nm, cur_d[act]) > 0)[:, None], -nm, nm)
-        seeds = Seeds(patches[act, e], uvs[act, e].astype(np.float64), pt, nm)
+        on = tracer.piece_base[patches[act, e]] >= 0    # a NURBS patch (a known hit may not be)
+        seeds = Seeds(patches[act, e], uvs[act, e].astype(np.float64), None, None)
         tmax = b.tmax[rays[act]] if e == 0 else np.full(len(act), np.inf)
         hit = polish_hits(tracer, cur_o[act], cur_d[act], seeds, max_move[act], min_cos,
                           floor[act], tmax)
