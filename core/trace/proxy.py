@@ -2,13 +2,16 @@
 cheap conservative tests of whether a segment between two known surface points crosses the
 object in between (a triangle any-hit is a few microseconds; the exact search tens).
 
-The proxy tessellates every Bezier piece of every NURBS patch (the patch's knot spans) on its
-own uniform grid, refined piece by piece until the gap between the surface and the proxy at
-the grid cells' centres and edge midpoints is within MAX_GAP_REL (mesh patches as they are).
-``deviation`` bounds how far the proxy lies from the surface: the largest such gap times
-DEVIATION_SAFETY. Near a segment's ends (which lie on the exact surface) the proxy can be met
-although the surface is not: those stretches, ``deviation`` over the sine of the segment's
-angle with the surface there, are not tested.
+The tessellation covers every Bezier piece of every NURBS patch (the patch's knot spans) with
+its own uniform grid, refined piece by piece until the gap between the surface and the grid at
+the cells' centres and edge midpoints is within MAX_GAP_REL (mesh patches as they are).
+``deviation`` bounds how far the tessellation lies from the surface: the largest such gap times
+DEVIATION_SAFETY. The proxy is two shells, the tessellation moved by ``deviation`` along its
+vertex normals either way: the surface lies between them, so a segment that meets the surface
+meets a shell, even one grazing a convex patch that the tessellation alone would miss. Near a
+segment's ends (which lie on the surface) a shell can be met although the surface is not: those
+stretches, twice ``deviation`` over the sine of the segment's angle with the surface there, are
+not tested.
 
 Units: scene units.
 """
@@ -42,7 +45,7 @@ MIN_END_SINE = 0.05
 
 @dataclass
 class Proxy:
-    """The proxy's triangles and its deviation from the exact surface (scene units)."""
+    """The proxy's triangles (both shells) and its deviation from the surface (scene units)."""
 
     mesh: MeshSet
     deviation: float
@@ -73,8 +76,11 @@ class Proxy:
                 rects, cells = rects[~done], cells * 2
             meshes.append(Mesh(name=p.name, vertices=np.concatenate(verts),
                                triangles=np.concatenate(tris), material=""))
-        return cls(mesh=MeshSet(meshes),
-                   deviation=max(DEVIATION_SAFETY * gap, MIN_DEVIATION_REL * tracer.diag))
+        dev = max(DEVIATION_SAFETY * gap, MIN_DEVIATION_REL * tracer.diag)
+        shells = [Mesh(name=f"{m.name}{side}", vertices=m.vertices + sign * dev
+                       * _vertex_normals(m.vertices, m.triangles), triangles=m.triangles,
+                       material="") for m in meshes for side, sign in (("+", 1.0), ("-", -1.0))]
+        return cls(mesh=MeshSet(shells), deviation=dev)
 
     def crossed(self, start, d, length, n_start, n_end=None) -> np.ndarray:
         """(N,) bool: whether the segments from surface points ``start`` (N, 3) along unit
@@ -92,8 +98,21 @@ class Proxy:
         return out
 
     def _end_stretch(self, d, n) -> np.ndarray:
+        """How far from a surface point a segment leaving it along ``d`` (normal ``n``) may
+        still be inside the shells: twice the deviation over the sine of its angle."""
         sine = np.abs(np.einsum("ij,ij->i", d, n))
-        return self.deviation / np.maximum(sine, MIN_END_SINE)
+        return 2.0 * self.deviation / np.maximum(sine, MIN_END_SINE)
+
+
+def _vertex_normals(v, tris) -> np.ndarray:
+    """(V, 3) unit vertex normals of a triangle mesh: the area-weighted sum of its triangles'
+    normals (zero where they cancel or vanish, as at a collapsed edge's degenerate cells)."""
+    n = np.cross(v[tris[:, 1]] - v[tris[:, 0]], v[tris[:, 2]] - v[tris[:, 0]])
+    acc = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(acc, tris[:, k], n)
+    ln = np.linalg.norm(acc, axis=1)
+    return acc / np.where(ln > 0, ln, 1.0)[:, None]
 
 
 def _piece_grids(surf, rects, cells: int):
