@@ -16,6 +16,7 @@ import pytest
 
 from riray.geometry.primitives import bilinear, box_faces, sphere
 from riray.ritree.bake import bake
+from riray.ritree.query import paths
 from riray.ritree.query import SOLVED, TRACED, QueryOptions, TreeQuery
 from riray.ritree.region import Region
 from riray.ritree.tree import BakeParams
@@ -23,6 +24,13 @@ from riray.scene.model import ObjectMaterial, Patch, RenderSettings, Scene, Spec
 from riray.trace.scene_tracer import SceneTracer
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
+
+
+@pytest.fixture(autouse=True)
+def every_path_length(monkeypatch):
+    """Solve paths of any length here (the product skips the short ones, which trace about as
+    cheaply: test_short_paths_are_left_to_the_tracer)."""
+    monkeypatch.setattr(paths, "MIN_SOLVE_EVENTS", 1)
 
 REFUSE_ALL = QueryOptions(max_error_deg=0.0, fallback_angle_deg=None)
 # Newton stops within NEWTON_TOL_REL (1e-9) of the diagonal; through a few events that stays far
@@ -211,3 +219,12 @@ def test_a_ray_is_solved_only_along_its_samples_recorded_path(slab):
     finally:
         tree.table.tree[:] = saved
     assert not np.any(ans == SOLVED)
+
+
+def test_short_paths_are_left_to_the_tracer(ball, monkeypatch):
+    """With the product's MIN_SOLVE_EVENTS (3), the sphere's two-event paths are traced."""
+    monkeypatch.setattr(paths, "MIN_SOLVE_EVENTS", 3)
+    st, tree = ball
+    o, d = aimed_rays(st, 500, 6, (0.02, 0.23))
+    _, ans, ex = answers(st, tree, o, d)
+    assert not np.any(ans == SOLVED) and np.all(ans[ex.hit] == TRACED)

@@ -49,6 +49,10 @@ CHAIN_MAX_TURN_DEG = 30.0
 # another hit by the exact tracer, not the proxy: its untested stretch would exceed ~5 times
 # the proxy's deviation.
 ESCAPE_EXACT_SINE = 0.2
+# Paths of fewer events are not solved: tracing such a ray costs about what solving it does
+# (glass_sphere close, two-event paths: 68 us a traced ray, 70 us a solve with its checks),
+# while a path of four events or a trapped one costs a trace several times more.
+MIN_SOLVE_EVENTS = 3
 # Distinct sample paths tried per ray (the heaviest sample's first).
 CANDIDATE_PATHS = 2
 # Rays refused for these reasons are solved along a sample's path before they are traced.
@@ -91,12 +95,14 @@ def solve_paths(q, b) -> None:
 
 def sample_weights(q, loc, pc):
     """(ids (n, 16), weights (n, 16)) of the located rays' ``loc`` samples: the bilinear weight
-    of each at the viewpoint and direction levels, -1 where its class is not ``pc``."""
+    of each at the viewpoint and direction levels, -1 where its class is not ``pc`` or its
+    path is shorter than MIN_SOLVE_EVENTS."""
     ids = q.tree.dir_forest.corner[loc.leaf].reshape(-1, SET_CORNERS)
+    long = 1 + np.sum(q.table.ev_patch[ids] >= 0, axis=-1) >= MIN_SOLVE_EVENTS
     w_vp = _bilinear(loc.alpha, loc.beta)                          # (n, 4) per DQ
     w_dir = np.stack([_bilinear(loc.lx[:, k], loc.ly[:, k]) for k in range(N_DQ)], axis=1)
     w = (w_vp[:, :, None] * w_dir).reshape(-1, SET_CORNERS)
-    return ids, np.where(q.table.cls[ids] == pc[:, None], w, -1.0)
+    return ids, np.where((q.table.cls[ids] == pc[:, None]) & long, w, -1.0)
 
 
 def _bilinear(x, y) -> np.ndarray:
