@@ -261,9 +261,8 @@ def test_max_error_and_path_identity_trace_through_baked_tree(bl, tmp_path):
     query: with a tolerance far below any error the bake measured and mirror rays from the
     interpolated normal and no path solving, nearly every object pixel is traced (the Traced
     pass and LAST_RENDER agree); with exact mirror hits (the default) most of those are answered
-    by Newton instead, and with path solving (the default) some of the rest are solved along a
-    sample's path; with the tolerance off far fewer are traced; path identity only adds traced
-    rays; none of it needs a re-bake."""
+    by Newton instead, and path solving (the default) traces no more; with the tolerance off
+    far fewer are traced; path identity only adds traced rays; none of it needs a re-bake."""
     bpy = bl.bpy
     obj = baked_scene(bl, tmp_path, "tree_tolerance.blend")
     p = obj.riray
@@ -310,7 +309,7 @@ def test_max_error_and_path_identity_trace_through_baked_tree(bl, tmp_path):
     assert off < 0.5 and off <= path            # here 0.11 / 0.11 / 1.0
     assert tight >= 0.98
     assert tight_newton < 0.5                   # here 0.18
-    assert tight_solved < tight_newton          # here 0.12
+    assert tight_solved <= tight_newton         # paths this short are left to the tracer
 
 
 def exr_attributes(path) -> dict:
