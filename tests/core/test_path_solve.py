@@ -110,25 +110,25 @@ def ball():
                     region=top_cells(3, 0.0, 0.25), workers=1)
 
 
-@pytest.fixture(scope="module")
-def slab():
+def glass_slab(max_events):
+    """A glass block of six faces, one class each, baked over the middle of its top face."""
     faces = box_faces((-1, -1, 0), (1, 1, 1.2))
     st = scene_of(SpecularObject("slab", [Patch(f"f{i}", i, surface=f)
                                           for i, f in enumerate(faces)],
-                                 ObjectMaterial(kind="glass", ior=1.5)))
+                                 ObjectMaterial(kind="glass", ior=1.5)), max_events)
     return st, bake(st, BakeParams(viewpoint_depth=2, direction_depth=4),
                     region=top_cells(2, 0.25, 0.75), workers=1)
+
+
+@pytest.fixture(scope="module")
+def slab():
+    return glass_slab(8)
 
 
 @pytest.fixture(scope="module")
 def trapping_slab():
     """The slab with max_events 2: rays with a third hit are trapped (null)."""
-    faces = box_faces((-1, -1, 0), (1, 1, 1.2))
-    st = scene_of(SpecularObject("slab", [Patch(f"f{i}", i, surface=f)
-                                          for i, f in enumerate(faces)],
-                                 ObjectMaterial(kind="glass", ior=1.5)), max_events=2)
-    return st, bake(st, BakeParams(viewpoint_depth=2, direction_depth=4),
-                    region=top_cells(2, 0.25, 0.75), workers=1)
+    return glass_slab(2)
 
 
 @pytest.fixture(scope="module")

@@ -26,6 +26,8 @@ The others are traced.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ...trace.objectfn import (REFLECT, REFRACT, SECONDARY_T_MIN_REL, TREE_HASH_SEED,
@@ -174,8 +176,10 @@ def chain(q, b, rays, sid, max_move) -> None:
         good = np.concatenate([good[null], out[~_hits_again(q, cur_o[out], cur_d[out], last)]])
     null = tab.null[sid[good]]
     cur_d[good[null]] = 0.0
-    _answer(q, b, rays[good], first.take(good), cur_o[good], cur_d[good], null,
-            n_ev[good], h[good].astype(np.uint32), fresnel[good], refl_dir[good])
+    _answer(q, b, rays[good], first.take(good),
+            Chains(oo=cur_o[good], od=cur_d[good], null=null, events=n_ev[good],
+                   tree=h[good].astype(np.uint32), fresnel=fresnel[good],
+                   refl_dir=refl_dir[good]))
 
 
 def _hits_again(q, o, d, n) -> np.ndarray:
@@ -227,20 +231,34 @@ def _known_first_hits(b, rows, patch, hit: PatchHit) -> None:
         hit.put(k[same], kh.take(same))
 
 
-def _answer(q, b, rows, first: PatchHit, oo, od, null, events, tree_hash, fresnel,
-            refl_dir) -> None:
-    """Write the solved answers of query rays ``rows`` (SOLVED; ``null``: trapped, the
-    output origin its last hit and the direction zero, as the tracer answers it)."""
+@dataclass
+class Chains:
+    """What the solved chains of n rays leave: output origin and direction (n, 3; a trapped
+    ray's origin its last hit, its direction zero, as the tracer answers it), trapped or not,
+    events, ray-tree hash, and a dielectric's Fresnel weight and reflected direction."""
+
+    oo: np.ndarray
+    od: np.ndarray
+    null: np.ndarray
+    events: np.ndarray
+    tree: np.ndarray
+    fresnel: np.ndarray
+    refl_dir: np.ndarray
+
+
+def _answer(q, b, rows, first: PatchHit, ch: Chains) -> None:
+    """Write the solved answers of query rays ``rows`` (SOLVED): their exact first hits
+    ``first`` and chains ``ch``."""
     d = b.d[rows]
     nrm = np.where((np.einsum("ij,ij->i", first.normal, d) > 0)[:, None], -first.normal,
                    first.normal)
     res = b.res
-    res.hit[rows], res.null[rows] = True, null
-    res.out_origin[rows], res.out_dir[rows] = oo, od
+    res.hit[rows], res.null[rows] = True, ch.null
+    res.out_origin[rows], res.out_dir[rows] = ch.oo, ch.od
     res.t_first[rows], res.point[rows], res.normal[rows] = first.t, first.point, nrm
     res.patch[rows], res.cls[rows] = first.patch, q.st.tracer.class_of[first.patch]
-    res.events[rows], res.tree[rows] = events, tree_hash
-    res.fresnel[rows], res.refl_dir[rows] = fresnel, refl_dir
+    res.events[rows], res.tree[rows] = ch.events, ch.tree
+    res.fresnel[rows], res.refl_dir[rows] = ch.fresnel, ch.refl_dir
     res.uv[rows] = q.st.tracer.normalized_uv(first.patch, first.u, first.v)
     b.ans[rows] = SOLVED
     b.why[rows] = 0
