@@ -41,6 +41,9 @@ DEVIATION_SAFETY = 2.0
 # Sine of the segment's angle with the surface below which the end stretch is taken as this
 # (a grazing segment's untested stretch would be most of it).
 MIN_END_SINE = 0.05
+# Below this sine of a segment's angle with the surface at an end, its untested stretch exceeds
+# ten deviations: callers ask the exact tracer about such segments instead.
+GRAZING_SINE = 0.2
 
 
 @dataclass

@@ -34,8 +34,9 @@ from ...trace.objectfn import (REFLECT, REFRACT, SECONDARY_T_MIN_REL, TREE_HASH_
                                fresnel_dielectric, reflect, refract, tree_hash_step)
 from ...trace.patches import PatchHit
 from ...trace.polish import Seeds, polish_hits
+from ...trace.proxy import GRAZING_SINE
 from ..answers import COL, SOLVED, TRACED, WHY_PATH, WHY_TOLERANCE
-from .sets import N_CORNERS, N_DQ, SET_CORNERS
+from .sets import N_CORNERS, corner_weights
 
 # Each event's Newton root is kept only within this distance of its seed's surface point
 # (relative to the box diagonal), plus CHAIN_MOVE_PER_OFFSET times the distance between the
@@ -47,10 +48,6 @@ from .sets import N_CORNERS, N_DQ, SET_CORNERS
 CHAIN_MAX_MOVE_REL = 5e-2
 CHAIN_MOVE_PER_OFFSET = 4.0
 CHAIN_MAX_TURN_DEG = 30.0
-# A solved ray leaving its last hit at a sine below this (with the surface) is checked for
-# another hit by the exact tracer, not the proxy: its untested stretch would exceed ~5 times
-# the proxy's deviation.
-ESCAPE_EXACT_SINE = 0.2
 # Paths of fewer events are not solved: tracing such a ray costs about what solving it does
 # (glass_sphere close, two-event paths: 68 us a traced ray, 70 us a solve with its checks),
 # while a path of four events or a trapped one costs a trace several times more.
@@ -99,17 +96,9 @@ def sample_weights(q, loc, pc):
     """(ids (n, 16), weights (n, 16)) of the located rays' ``loc`` samples: the bilinear weight
     of each at the viewpoint and direction levels, -1 where its class is not ``pc`` or its
     path is shorter than MIN_SOLVE_EVENTS."""
-    ids = q.tree.dir_forest.corner[loc.leaf].reshape(-1, SET_CORNERS)
+    ids, w = corner_weights(q.tree, loc)
     long = 1 + np.sum(q.table.ev_patch[ids] >= 0, axis=-1) >= MIN_SOLVE_EVENTS
-    w_vp = _bilinear(loc.alpha, loc.beta)                          # (n, 4) per DQ
-    w_dir = np.stack([_bilinear(loc.lx[:, k], loc.ly[:, k]) for k in range(N_DQ)], axis=1)
-    w = (w_vp[:, :, None] * w_dir).reshape(-1, SET_CORNERS)
     return ids, np.where((q.table.cls[ids] == pc[:, None]) & long, w, -1.0)
-
-
-def _bilinear(x, y) -> np.ndarray:
-    """(n, 4) bilinear weights of the quadtree corners (0, 0), (1, 0), (0, 1), (1, 1)."""
-    return np.stack([(1 - x) * (1 - y), x * (1 - y), (1 - x) * y, x * y], axis=1)
 
 
 def chain(q, b, rays, sid, max_move) -> None:
@@ -184,11 +173,11 @@ def chain(q, b, rays, sid, max_move) -> None:
 
 def _hits_again(q, o, d, n) -> np.ndarray:
     """(n,) bool: whether the rays leaving surface points ``o`` along ``d`` (normals ``n``)
-    meet the object again: the proxy decides, except for rays leaving within ESCAPE_EXACT_SINE
-    of the tangent plane (the proxy's untested stretch would be long), which the exact tracer
+    meet the object again: the proxy decides, except for rays leaving within GRAZING_SINE of
+    the tangent plane (the proxy's untested stretch would be long), which the exact tracer
     decides."""
     sine = np.abs(np.einsum("ij,ij->i", d, n))
-    grazing = sine < ESCAPE_EXACT_SINE
+    grazing = sine < GRAZING_SINE
     again = np.zeros(len(o), bool)
     g = np.flatnonzero(grazing)
     if len(g):

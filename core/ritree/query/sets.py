@@ -105,6 +105,20 @@ class SampleSets:
         return SampleSets(leaf=self.leaf[keep], ids=self.ids[keep], cls=self.cls[keep])
 
 
+def corner_weights(tree, loc):
+    """(ids (n, 16), weights (n, 16)): the 16 corner samples of the located rays ``loc`` and
+    their bilinear weights at the viewpoint and direction levels (summing to 1 a ray)."""
+    ids = tree.dir_forest.corner[loc.leaf].reshape(-1, SET_CORNERS)
+    w_vp = _bilinear(loc.alpha, loc.beta)                          # (n, 4) per DQ
+    w_dir = np.stack([_bilinear(loc.lx[:, k], loc.ly[:, k]) for k in range(N_DQ)], axis=1)
+    return ids, (w_vp[:, :, None] * w_dir).reshape(-1, SET_CORNERS)
+
+
+def _bilinear(x, y) -> np.ndarray:
+    """(n, 4) bilinear weights of the quadtree corners (0, 0), (1, 0), (0, 1), (1, 1)."""
+    return np.stack([(1 - x) * (1 - y), x * (1 - y), (1 - x) * y, x * y], axis=1)
+
+
 def group(q, b) -> None:
     """Group the located rays ``b.loc`` by their four leaves: ``b.sets``, ``b.set_of`` (per
     located ray), all of them open (``b.go``)."""
