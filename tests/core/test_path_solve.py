@@ -228,24 +228,3 @@ def test_short_paths_are_left_to_the_tracer(ball, monkeypatch):
     o, d = aimed_rays(st, 500, 6, (0.02, 0.23))
     _, ans, ex = answers(st, tree, o, d)
     assert not np.any(ans == SOLVED) and np.all(ans[ex.hit] == TRACED)
-
-
-@pytest.mark.parametrize("name", ["ball", "blocked"])
-def test_newton_first_hits_are_the_exact_first_hits(name, request):
-    """Two-class rays (silhouettes, patch borders) take their exact first hit from Newton on
-    their samples' patches where the proxy certifies it: every answer is the one the full
-    first-hit search gives (solve_paths off), and Newton found many of those hits (the others,
-    misses among them, are searched in full)."""
-    st, tree = request.getfixturevalue(name)
-    o, d = aimed_rays(st, 4000, 7, (0.02, 0.23)) if name == "ball" \
-        else down_rays(st, 4000, 7, (0.3, 0.7), 1.5)
-    opts = QueryOptions(max_error_deg=None)
-    res, ans, why, stats = TreeQuery(tree, st, opts)(o, d)
-    ref, ans_ref, why_ref, stats_ref = TreeQuery(tree, st, replace(opts, solve_paths=False))(o, d)
-    assert stats["exact_first_hits"] == stats_ref["exact_first_hits"] > 200
-    assert stats["newton_first_hits"] > 0.3 * stats["exact_first_hits"]
-    assert stats_ref["newton_first_hits"] == 0
-    assert np.array_equal(ans, ans_ref) and np.array_equal(why, why_ref)
-    assert np.array_equal(res.cls, ref.cls) and np.array_equal(res.patch, ref.patch)
-    assert np.abs(res.out_dir - ref.out_dir).max() < DIR_TOL
-    assert np.abs(res.point - ref.point).max() < POS_TOL

@@ -90,7 +90,6 @@ class TreeQuery:
             solve_paths(self, b)
         self._trace(b)
         stats = {"exact_first_hits": b.exact_first_hits,
-                 "newton_first_hits": b.newton_first_hits,
                  "exact_mirror_hits": b.exact_mirror_hits, "solved_along_path": b.solved,
                  **{f"query_{k}_cpu_s": v for k, v in b.clock.cpu.items()}}
         return b.res, b.ans, b.why, stats
