@@ -24,6 +24,8 @@ Units: t is the distance along unit directions, in scene units (metres).
 
 from __future__ import annotations
 
+from functools import cached_property
+
 import numpy as np
 
 from ..scene.model import Mesh, SpecularObject
@@ -31,6 +33,7 @@ from .hits import PatchHit
 from .meshes import MeshSet
 from .newton import (MAX_STEP, NEWTON_BLOCK, NEWTON_ITERS, NEWTON_TOL_REL, hull_meets, project_nets,
                      ray_planes, newton, second_derivative_bounds)
+from .proxy import Proxy
 from .roots import DEGENERATE_REL, PARAM_MARGIN, RootSearch
 from .subpatches import bezier_pieces, flat_subpatches
 
@@ -123,6 +126,12 @@ class PatchTracer:
                 ids.append(pid)
         self.mesh_patch = np.array(ids, dtype=np.int64)
         self.meshes = MeshSet(meshes) if meshes else None
+
+    @cached_property
+    def occlusion_proxy(self):
+        """The object's occlusion proxy (trace.proxy.Proxy), built on first use and kept: every
+        query over this tracer shares it."""
+        return Proxy.of(self)
 
     def normalized_uv(self, patch, u, v) -> np.ndarray:
         """(N, 2) hit parameters (u, v) of patches ``patch`` (-1: a miss, 0 there) divided into

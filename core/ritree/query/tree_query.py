@@ -7,7 +7,6 @@ from dataclasses import replace
 import numpy as np
 
 from ..answers import OUTSIDE, TRACED, WHY_TOLERANCE, is_traced
-from ...trace.proxy import Proxy
 from ..locate import locate
 from .batch import Batch
 from .blend import answer, blend_easy
@@ -49,7 +48,7 @@ class TreeQuery:
         tree.blend_vals, tree.vp_locator, tree.dir_locator
         tree.leaf_ok, tree.leaf_sampled, tree.cell_rect
         # the path solver's occlusion proxy (query/paths.py)
-        self.proxy = Proxy.of(st.tracer) if self.opt.solve_paths else None
+        self.proxy = st.tracer.occlusion_proxy if self.opt.solve_paths else None
         # a bake that measured no viewpoint cell (a full tree, or one whose every test ray was
         # traced) left no viewpoint-level errors to bound
         if (self.opt.max_error_deg is not None and self.opt.fallback_angle_deg is not None
