@@ -316,8 +316,12 @@ def _sigint_blocked(pid):
     """Whether SIGINT is blocked in every thread of process ``pid`` (Linux /proc)."""
     masks = []
     for task in os.listdir(f"/proc/{pid}/task"):
-        with open(f"/proc/{pid}/task/{task}/status") as f:
-            masks += [int(line.split()[1], 16) for line in f if line.startswith("SigBlk:")]
+        try:
+            with open(f"/proc/{pid}/task/{task}/status") as f:
+                masks += [int(line.split()[1], 16) for line in f if line.startswith("SigBlk:")]
+        except FileNotFoundError:  # the thread ended between listing and reading
+            continue
+    assert masks, f"no thread of process {pid} could be read"
     return all(m & (1 << (signal.SIGINT - 1)) for m in masks)
 
 
