@@ -228,3 +228,20 @@ def test_short_paths_are_left_to_the_tracer(ball, monkeypatch):
     o, d = aimed_rays(st, 500, 6, (0.02, 0.23))
     _, ans, ex = answers(st, tree, o, d)
     assert not np.any(ans == SOLVED) and np.all(ans[ex.hit] == TRACED)
+
+
+def test_the_first_stretch_is_checked_unless_the_full_search_found_the_hit(blocked):
+    """A ray down through the strip to the floor crosses the object before its floor hit; that
+    first stretch is not looked at where the full first-hit search found the hit (it would
+    have been the strip's), and is otherwise."""
+    st, tree = blocked
+    q = TreeQuery(tree, st, REFUSE_ALL)
+    o, d = P(0.2, 0.0, 2.0)[None], P(0.0, 0.0, -1.0)[None]
+    pts, nrms = P(0.2, 0.0, 0.0)[None, None], P(0.0, 0.0, 1.0)[None, None]
+    dirs, n_ev = P(0.0, 0.0, 1.0)[None, None], np.array([1])
+    assert paths._crossed(q, o, d, pts, nrms, dirs, n_ev, np.array([False]))[0]
+    assert not paths._crossed(q, o, d, pts, nrms, dirs, n_ev, np.array([True]))[0]
+    # the second stretch (floor -> up through the strip) is checked either way
+    two = np.array([[[0.2, 0.0, 0.0], [0.2, 0.0, 1.0]]])
+    assert paths._crossed(q, o, d, two, np.repeat(nrms, 2, axis=1), np.repeat(dirs, 2, axis=1),
+                          np.array([2]), np.array([True]))[0]

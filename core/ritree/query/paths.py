@@ -153,8 +153,9 @@ def chain(q, b, rays, sid, max_move) -> None:
         cur_o[act], cur_d[act] = hit.point, new_d
         pts[act, e], nrms[act, e], dirs[act, e] = hit.point, nrm, new_d
     good = np.flatnonzero(alive & (h.astype(np.uint32) == tab.tree[sid]))
+    searched = b.known.pos[rays[good]] >= 0     # first hit from the full search: the nearest
     good = good[~_crossed(q, b.o[rays[good]], b.d[rays[good]], pts[good], nrms[good],
-                          dirs[good], n_ev[good])]
+                          dirs[good], n_ev[good], searched)]
     # a trapped path is the ray's where all its max_events events are; any other must leave
     null = tab.null[sid[good]]
     good = good[~null | (n_ev[good] == q.st.scene.render.max_events)]
@@ -189,16 +190,18 @@ def _hits_again(q, o, d, n) -> np.ndarray:
     return again
 
 
-def _crossed(q, o, d, pts, nrms, dirs, n_ev) -> np.ndarray:
+def _crossed(q, o, d, pts, nrms, dirs, n_ev, searched) -> np.ndarray:
     """(n,) bool: whether the proxy (trace.proxy) finds the object between the ray's origin
     ``o`` (direction ``d``) and its first solved hit, or between two consecutive solved hits
     (``pts``, ``nrms``: (n, E, 3) points and normals facing the incoming ray, ``dirs`` the
-    directions leaving them; ``n_ev`` events each)."""
+    directions leaving them; ``n_ev`` events each); the first stretch is not looked at where
+    ``searched`` (n,): that first hit is the full search's, the nearest."""
     bad = np.zeros(len(o), bool)
     if len(o) == 0:
         return bad
-    first = np.linalg.norm(pts[:, 0] - o, axis=1)
-    bad |= q.proxy.crossed(o, d, first, d, nrms[:, 0])
+    k = np.flatnonzero(~searched)
+    first = np.linalg.norm(pts[k, 0] - o[k], axis=1)
+    bad[k] = q.proxy.crossed(o[k], d[k], first, d[k], nrms[k, 0])
     for e in range(pts.shape[1] - 1):
         k = np.flatnonzero(~bad & (n_ev > e + 1))
         if len(k) == 0:
