@@ -235,9 +235,8 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                                   description="A ray that Max error or Path identity would "
                                               "trace is first solved exactly along the path "
                                               "of its nearest sample (the same surfaces in "
-                                              "the same order, three events or more); only a "
-                                              "ray that leaves that path is traced. Off: "
-                                              "trace every such ray")
+                                              "the same order); only a ray that leaves that "
+                                              "path is traced. Off: trace every such ray")
     many_classes: EnumProperty(
         name="More than two classes",
         items=[("FIRST_HIT", "First hit", "Take the class of the ray's exact first hit "

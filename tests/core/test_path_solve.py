@@ -26,12 +26,6 @@ from riray.trace.scene_tracer import SceneTracer
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 
 
-@pytest.fixture(autouse=True)
-def every_path_length(monkeypatch):
-    """Solve paths of any length here (the product skips the short ones, which trace about as
-    cheaply: test_short_paths_are_left_to_the_tracer)."""
-    monkeypatch.setattr(paths, "MIN_SOLVE_EVENTS", 1)
-
 REFUSE_ALL = QueryOptions(max_error_deg=0.0, fallback_angle_deg=None)
 # Newton stops within NEWTON_TOL_REL (1e-9) of the diagonal; through a few events that stays far
 # below these (radians, and fractions of the box diagonal).
@@ -221,15 +215,6 @@ def test_a_ray_is_solved_only_along_its_samples_recorded_path(slab):
     assert not np.any(ans == SOLVED)
 
 
-def test_short_paths_are_left_to_the_tracer(ball, monkeypatch):
-    """With the product's MIN_SOLVE_EVENTS (3), the sphere's two-event paths are traced."""
-    monkeypatch.setattr(paths, "MIN_SOLVE_EVENTS", 3)
-    st, tree = ball
-    o, d = aimed_rays(st, 500, 6, (0.02, 0.23))
-    _, ans, ex = answers(st, tree, o, d)
-    assert not np.any(ans == SOLVED) and np.all(ans[ex.hit] == TRACED)
-
-
 def test_the_first_stretch_is_checked_unless_the_full_search_found_the_hit(blocked):
     """A ray down through the strip to the floor crosses the object before its floor hit; that
     first stretch is not looked at where the full first-hit search found the hit (it would
@@ -245,3 +230,19 @@ def test_the_first_stretch_is_checked_unless_the_full_search_found_the_hit(block
     two = np.array([[[0.2, 0.0, 0.0], [0.2, 0.0, 1.0]]])
     assert paths._crossed(q, o, d, two, np.repeat(nrms, 2, axis=1), np.repeat(dirs, 2, axis=1),
                           np.array([2]), np.array([True]))[0]
+
+
+def test_rays_with_too_few_usable_samples_are_solved(trapping_slab):
+    """Without a tolerance, a ray among null (trapped) samples has too few usable ones to
+    blend: it is solved along a sample's path (a null one included) instead of traced."""
+    st, tree = trapping_slab
+    o, d = down_rays(st, 4000, 7, (0.3, 0.7), 1.5)
+    opts = QueryOptions(max_error_deg=None, fallback_angle_deg=None)
+    res, ans, why, _ = TreeQuery(tree, st, opts)(o, d)
+    _, ans_off, why_off, _ = TreeQuery(tree, st, replace(opts, solve_paths=False))(o, d)
+    ex = st.object_function(o, d)
+    usable = why_off == paths.WHY_USABLE
+    solved = np.flatnonzero(ans == SOLVED)
+    assert usable.sum() > 50 and np.all(usable[solved])
+    assert len(solved) > 0.5 * usable.sum()
+    assert_exact(res, ex, solved)

@@ -10,7 +10,7 @@ import pytest
 
 from riray.ritree import tree as ritree
 from riray.ritree.bake import bake
-from riray.ritree.query import ANSWER_NAMES, SOLVED, QueryOptions, paths
+from riray.ritree.query import ANSWER_NAMES, SOLVED, QueryOptions
 from riray.ritree.region import region_for_cameras
 from riray.scene.camera import Shot
 from riray.scene.samples import build
@@ -18,12 +18,6 @@ from riray.trace.scene_tracer import SceneTracer
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 
-
-@pytest.fixture(autouse=True)
-def every_path_length(monkeypatch):
-    """Solve the sphere's two-event paths too (the product leaves paths this short to the
-    tracer, paths.MIN_SOLVE_EVENTS), so that solved rays occur."""
-    monkeypatch.setattr(paths, "MIN_SOLVE_EVENTS", 1)
 
 SIZE = 24
 # A tolerance no leaf meets: every located ray that hits goes to the path solver or the tracer.

@@ -1,8 +1,8 @@
 """Exact answers along a sample's path, for rays the tree would otherwise trace.
 
-A ray that the baked-error tolerance (or path identity) refuses usually takes the path of one of
-its samples: the same patches, in the same order, with the same reflections, refractions and
-total internal reflections. The tree stores each hit sample's path seeds (tree layout 6: the
+A ray that the baked-error tolerance refuses (or path identity, or too few usable samples)
+usually takes the path of one of its samples: the same patches, in the same order, with the
+same reflections, refractions and total internal reflections. The tree stores each hit sample's path seeds (tree layout 6: the
 first hit's normalized patch parameters and those of the next RECORDED_EVENTS events), so the
 ray is solved event by event along the path of its nearest sample of its class (then of the
 nearest with another path, CANDIDATE_PATHS in all): Newton on the patch the path visits from
@@ -35,7 +35,7 @@ from ...trace.objectfn import (REFLECT, REFRACT, SECONDARY_T_MIN_REL, TREE_HASH_
 from ...trace.patches import PatchHit
 from ...trace.polish import Seeds, polish_hits
 from ...trace.proxy import GRAZING_SINE
-from ..answers import COL, SOLVED, TRACED, WHY_PATH, WHY_TOLERANCE
+from ..answers import COL, SOLVED, TRACED, WHY_PATH, WHY_TOLERANCE, WHY_USABLE
 from .sets import N_CORNERS, corner_weights
 
 # Each event's Newton root is kept only within this distance of its seed's surface point
@@ -48,14 +48,12 @@ from .sets import N_CORNERS, corner_weights
 CHAIN_MAX_MOVE_REL = 5e-2
 CHAIN_MOVE_PER_OFFSET = 4.0
 CHAIN_MAX_TURN_DEG = 30.0
-# Paths of fewer events are not solved: tracing such a ray costs about what solving it does
-# (glass_sphere close, two-event paths: 68 us a traced ray, 70 us a solve with its checks),
-# while a path of four events or a trapped one costs a trace several times more.
-MIN_SOLVE_EVENTS = 3
 # Distinct sample paths tried per ray (the heaviest sample's first).
 CANDIDATE_PATHS = 2
-# Rays refused for these reasons are solved along a sample's path before they are traced.
-SOLVABLE = (WHY_TOLERANCE, WHY_PATH)
+# Rays refused for these reasons are solved along a sample's path before they are traced:
+# past the tolerance, samples on different paths, or too few usable samples of the class
+# (null ones among them: a null sample's path is a candidate too).
+SOLVABLE = (WHY_TOLERANCE, WHY_PATH, WHY_USABLE)
 
 
 def solve_paths(q, b) -> None:
@@ -94,11 +92,9 @@ def solve_paths(q, b) -> None:
 
 def sample_weights(q, loc, pc):
     """(ids (n, 16), weights (n, 16)) of the located rays' ``loc`` samples: the bilinear weight
-    of each at the viewpoint and direction levels, -1 where its class is not ``pc`` or its
-    path is shorter than MIN_SOLVE_EVENTS."""
+    of each at the viewpoint and direction levels, -1 where its class is not ``pc``."""
     ids, w = corner_weights(q.tree, loc)
-    long = 1 + np.sum(q.table.ev_patch[ids] >= 0, axis=-1) >= MIN_SOLVE_EVENTS
-    return ids, np.where((q.table.cls[ids] == pc[:, None]) & long, w, -1.0)
+    return ids, np.where(q.table.cls[ids] == pc[:, None], w, -1.0)
 
 
 def chain(q, b, rays, sid, max_move) -> None:
