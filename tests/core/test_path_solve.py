@@ -246,3 +246,26 @@ def test_rays_with_too_few_usable_samples_are_solved(trapping_slab):
     assert usable.sum() > 50 and np.all(usable[solved])
     assert len(solved) > 0.5 * usable.sum()
     assert_exact(res, ex, solved)
+
+
+def test_seeds_blend_the_same_path_samples_except_across_a_seam():
+    """Each event's seed is the weighted blend of the parameters of the ray's samples on the
+    candidate path (same ray-tree hash, of the ray's class); where those lie far apart (a closed
+    patch's seam between them) it is the candidate sample's own; other paths never count."""
+    from types import SimpleNamespace
+    from riray.ritree.answers import COL
+    from riray.trace.objectfn import RECORDED_EVENTS
+    n_s = 4
+    vals = np.zeros((n_s, COL.N), np.float32)
+    vals[:, COL.UV] = [[0.40, 0.5], [0.44, 0.5], [0.99, 0.5], [0.60, 0.5]]
+    ev_uv = np.zeros((n_s, RECORDED_EVENTS, 2), np.float32)
+    ev_uv[:, 0] = [[0.20, 0.1], [0.24, 0.1], [0.70, 0.1], [0.30, 0.1]]
+    ev_uv[:, 1] = [[0.02, 0.3], [0.98, 0.3], [0.50, 0.3], [0.50, 0.3]]     # across a seam
+    tab = SimpleNamespace(vals=vals, ev_uv=ev_uv, tree=np.array([7, 7, 9, 7], np.uint32))
+    ids = np.array([[0, 1, 2, 3]])
+    w = np.array([[0.5, 0.3, 0.2, -1.0]])           # sample 3: another class
+    seeds = paths.seed_uvs(tab, ids, w, np.array([0]))
+    # samples 0 and 1 (weights 0.5, 0.3) blend; 2 (another path) and 3 do not count
+    assert np.allclose(seeds[0, 0], [(0.5 * 0.40 + 0.3 * 0.44) / 0.8, 0.5], atol=1e-6)
+    assert np.allclose(seeds[0, 1], [(0.5 * 0.20 + 0.3 * 0.24) / 0.8, 0.1], atol=1e-6)
+    assert np.allclose(seeds[0, 2], [0.02, 0.3], atol=1e-6)       # the seam: sample 0's own

@@ -50,6 +50,11 @@ CHAIN_MOVE_PER_OFFSET = 4.0
 CHAIN_MAX_TURN_DEG = 30.0
 # Distinct sample paths tried per ray (the heaviest sample's first).
 CANDIDATE_PATHS = 2
+# Newton starts each event from the weighted blend of the parameters of the ray's samples on
+# the candidate path, where they lie within this of each other (normalized units, each axis);
+# farther apart they straddle a closed patch's seam (a blend lands far from both sides) or the
+# path bends sharply between them, and the heaviest sample's parameters are the seed.
+SEED_BLEND_SPREAD = 0.1
 # Rays refused for these reasons are solved along a sample's path before they are traced:
 # past the tolerance, samples on different paths, or too few usable samples of the class
 # (null ones among them: a null sample's path is a candidate too).
@@ -81,8 +86,8 @@ def solve_paths(q, b) -> None:
             sid = ids[k, best[k]]
             vp = q.tree.vp_forest.corner[loc.vnode[k], best[k] // N_CORNERS]
             offset = np.linalg.norm(entry[k] - q.tree.vp_pos[vp], axis=1)
-            chain(q, b, rays[k], sid, CHAIN_MAX_MOVE_REL * q.tree.diag
-                  + CHAIN_MOVE_PER_OFFSET * offset)
+            chain(q, b, rays[k], sid, seed_uvs(q.table, ids[k], w[k], sid),
+                  CHAIN_MAX_MOVE_REL * q.tree.diag + CHAIN_MOVE_PER_OFFSET * offset)
             # the next candidate: another path, for the rays still traced
             tried = np.full(len(w), -1, np.int64)
             tried[k] = q.table.tree[sid]
@@ -97,13 +102,35 @@ def sample_weights(q, loc, pc):
     return ids, np.where(q.table.cls[ids] == pc[:, None], w, -1.0)
 
 
-def chain(q, b, rays, sid, max_move) -> None:
-    """Solve query rays ``rays`` along the paths of samples ``sid`` and answer those kept;
-    ``max_move`` (n,): how far from its seed an event's root may lie (scene units)."""
+def seed_uvs(tab, ids, w, sid) -> np.ndarray:
+    """(n, E, 2) normalized parameters to start each event of sample ``sid``'s path from, for
+    rays whose samples are ``ids`` (n, 16) with weights ``w`` (-1: not of the ray's class):
+    the weighted blend of those on that path (same ray-tree hash), per event where their
+    parameters lie within SEED_BLEND_SPREAD of each other, else ``sid``'s own."""
+    own = _path_uvs(tab, sid)                                               # (n, E, 2)
+    uv = _path_uvs(tab, ids)                                                # (n, 16, E, 2)
+    same = (tab.tree[ids] == tab.tree[sid][:, None]) & (w >= 0)
+    ws = np.where(same, w, 0.0)
+    total = ws.sum(axis=1)
+    blend = np.einsum("nk,nkec->nec", ws / np.where(total > 0, total, 1.0)[:, None], uv)
+    on = same[:, :, None, None]
+    spread = np.where(on, uv, -np.inf).max(axis=1) - np.where(on, uv, np.inf).min(axis=1)
+    far = np.any(spread > SEED_BLEND_SPREAD, axis=2) | (total <= 0)[:, None]
+    return np.where(far[..., None], own, blend)
+
+
+def _path_uvs(tab, sid) -> np.ndarray:
+    """(..., E, 2) the normalized parameters of samples ``sid``'s first hit and later events."""
+    return np.concatenate([tab.vals[sid][..., None, COL.UV], tab.ev_uv[sid]], axis=-2)
+
+
+def chain(q, b, rays, sid, uvs, max_move) -> None:
+    """Solve query rays ``rays`` along the paths of samples ``sid`` from the events' seed
+    parameters ``uvs`` (n, E, 2) and answer those kept; ``max_move`` (n,): how far from its
+    seed an event's root may lie (scene units)."""
     tab, tracer, mat = q.table, q.st.tracer, q.material
     patches = np.concatenate([tab.patch[sid, None].astype(np.int64),
                               tab.ev_patch[sid].astype(np.int64)], axis=1)     # (n, E)
-    uvs = np.concatenate([tab.vals[sid, None, COL.UV], tab.ev_uv[sid]], axis=1)  # (n, E, 2)
     n_ev = np.sum(patches >= 0, axis=1)
     n = len(rays)
     alive = np.ones(n, bool)
