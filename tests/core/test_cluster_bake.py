@@ -33,6 +33,7 @@ CAMS = BakeParams(viewpoint_depth=1, direction_depth=3, viewpoint_refine=1)
 LIMIT_S = 180          # no cluster test may hang: each bake runs under this limit
 
 
+
 @pytest.fixture(scope="module")
 def cluster():
     with C.connect("local:2") as c:
@@ -185,7 +186,9 @@ def test_ctrl_c_keeps_the_previous_cache(tmp_path, local_full, default_sigint):
     assert line.startswith("dask: scheduler tcp://127.0.0.1:"), line
     proc.send_signal(signal.SIGINT)
     try:
-        _, err = proc.communicate(timeout=60)
+        # the workers end their running shard first: on a loaded 2-core machine that took
+        # over a minute
+        _, err = proc.communicate(timeout=LIMIT_S)
     finally:
         proc.kill()
     assert proc.returncode == 130, err
