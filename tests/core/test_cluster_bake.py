@@ -33,7 +33,6 @@ CAMS = BakeParams(viewpoint_depth=1, direction_depth=3, viewpoint_refine=1)
 LIMIT_S = 180          # no cluster test may hang: each bake runs under this limit
 
 
-
 @pytest.fixture(scope="module")
 def cluster():
     with C.connect("local:2") as c:
