@@ -64,6 +64,13 @@ WORKER_CONFIG = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": N
                  "distributed.worker.profile.enabled": False}
 
 
+# Level of Dask's own logging in local:N's processes. A shard that fails reaches the bake as
+# its future's exception and is reported in one line; below CRITICAL a worker also prints the
+# errors of a shutdown under load (a heartbeat to a scheduler that already closed, with a
+# traceback) on the terminal after a Ctrl-C.
+WORKER_LOG_LEVEL = logging.CRITICAL
+
+
 class ClusterError(ValueError):
     """The cluster cannot be reached or cannot finish the bake; the message says why."""
 
@@ -142,7 +149,7 @@ def _local_cluster(spec: str, distributed):
         with dask.config.set(WORKER_CONFIG):
             local = distributed.LocalCluster(n_workers=int(n), threads_per_worker=1,
                                              processes=True, dashboard_address=":0",
-                                             silence_logs=logging.ERROR)
+                                             silence_logs=WORKER_LOG_LEVEL)
     except BaseException:
         if block:
             signal.pthread_sigmask(signal.SIG_SETMASK, mask)
