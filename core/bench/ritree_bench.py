@@ -10,8 +10,8 @@ camera baked at ``deeper_tree``'s depths, against its own exact passes. On a mir
 default answers come from exact mirror hits (``--mirror-rays newton``), each tree also gets the
 default tolerance with mirror rays from the interpolated hit and normal (``--mirror-rays
 reflect``: rows *interp_reflect* and *deeper_reflect*). A last row, *deeper_rules* (one pass),
-runs the deeper tree's default rules without the tolerance: the object pixels they trace or
-answer beyond the default tolerance (or with a wrong kind of answer: hit / miss, null) are the
+runs the deeper tree's default rules without the tolerance and without solving along paths:
+the object pixels they trace or answer beyond the default tolerance (or with a wrong kind of answer: hit / miss, null) are the
 *floor* no render-time rule on that tree can go below. Columns: rays traced, the traced share
 of the object and that share plus the share answered beyond the tolerance,
 object-only and total CPU seconds (the paper's split, summed over a pass's shares) and a
@@ -198,11 +198,11 @@ def _table_view(bench: BenchRun, name, scene, st, view) -> tuple:
 
 def _deeper_configs(cfg, tree, mirror) -> dict:
     """measure_configs' entries on the deeper tree: the default options, and the default rules
-    without the tolerance (one pass): what they trace or answer beyond it is what no
-    render-time rule on this tree can avoid tracing (the floor); on a mirror the default
-    options with mirror rays from the interpolated normal."""
+    without the tolerance and without solving along paths (one pass): what they trace or
+    answer beyond the tolerance is what no interpolation rule on this tree can avoid (the
+    floor); on a mirror the default options with mirror rays from the interpolated normal."""
     configs = {"deeper": (tree, QueryOptions(), cfg.repeats),
-               "deeper_rules": (tree, QueryOptions(max_error_deg=None), 1)}
+               "deeper_rules": (tree, QueryOptions(max_error_deg=None, solve_paths=False), 1)}
     if mirror:
         configs["deeper_reflect"] = (tree, QueryOptions(mirror_rays="reflect"), cfg.repeats)
     return configs

@@ -27,8 +27,9 @@ ROW_LABELS = {"exact": "ray traced", "interp": "interpolated (no angle threshold
 
 def paper(**kw) -> QueryOptions:
     """The paper's rules with options ``kw``: no baked-error tolerance, mirror rays
-    interpolated."""
-    return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate", **kw})
+    interpolated, refused rays traced (not solved along a sample's path)."""
+    return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate",
+                           "solve_paths": False, **kw})
 
 
 @dataclass

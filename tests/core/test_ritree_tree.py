@@ -37,9 +37,9 @@ from riray.ritree.dircube import CUBE, DOMAIN, N_SLOTS, SLOT, UV_AXES, cube_to_d
 from riray.ritree.interp import angle_between
 from riray.ritree.locate import entry_points
 from riray.ritree.quadtree import Forest
-from riray.ritree.query import (EXTRAPOLATED_S, FULL, MISS, NULL_S, OUTSIDE, REDUCED, TRACED,
-                                WHY_BLEND, WHY_RAYTREE, WHY_THRESHOLD, WHY_TOLERANCE, WHY_USABLE,
-                                QueryOptions, TreeQuery)
+from riray.ritree.query import (EXTRAPOLATED_S, FULL, MISS, NULL_S, OUTSIDE, REDUCED, SOLVED,
+                                TRACED, WHY_BLEND, WHY_RAYTREE, WHY_THRESHOLD, WHY_TOLERANCE,
+                                WHY_USABLE, QueryOptions, TreeQuery)
 from riray.ritree.region import Region
 
 from riray.ritree import tree as ritree
@@ -50,9 +50,10 @@ from riray.scene.model import ObjectMaterial, Patch, RenderSettings, Scene, Spec
 
 
 def paper(**kw) -> QueryOptions:
-    """The paper's rules (no baked-error tolerance, mirror rays blended) with options
-    ``kw``."""
-    return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate", **kw})
+    """The paper's rules (no baked-error tolerance, mirror rays blended), refused rays traced
+    (not solved along a path), with options ``kw``."""
+    return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate",
+                           "solve_paths": False, **kw})
 
 
 # Interpolation exactness on affine ray maps (mirror, slab) is checked without the pairwise
@@ -250,8 +251,9 @@ def stored_matches_exact(tree, sid, ex, edge):
 
 
 def check_answers(res, ans, why):
-    assert np.all((ans >= MISS) & (ans <= NULL_S))
+    assert np.all((ans >= MISS) & (ans <= SOLVED))
     assert np.all(res.null[ans == NULL_S]) and np.all(res.hit[ans == NULL_S])
+    assert np.all(res.hit[ans == SOLVED])          # a ray solved along a path hit the object
     for k in ("out_origin", "out_dir", "point", "normal"):
         assert np.all(np.isfinite(getattr(res, k)[res.hit])), k
     ok = res.hit & ~res.null

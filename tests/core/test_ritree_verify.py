@@ -38,9 +38,10 @@ from riray.scene.samples import build
 
 
 def paper(**kw) -> QueryOptions:
-    """The paper's rules (no baked-error tolerance, mirror rays blended) with options
-    ``kw``."""
-    return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate", **kw})
+    """The paper's rules (no baked-error tolerance, mirror rays blended), refused rays traced
+    (not solved along a path), with options ``kw``."""
+    return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate",
+                           "solve_paths": False, **kw})
 
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
@@ -229,8 +230,8 @@ def test_tolerance_tightens_monotonically(sphere):
     ex = st.object_function(o, d, tmax)
     prev = None
     for tol in (None, 8.0, 4.0, 2.0, 1.0, 0.5, 0.25):
-        res, ans, why, _ = TreeQuery(tree, st, QueryOptions(angle_deg=None,
-                                                            max_error_deg=tol))(o, d, tmax)
+        res, ans, why, _ = TreeQuery(tree, st, QueryOptions(
+            angle_deg=None, max_error_deg=tol, solve_paths=False))(o, d, tmax)
         interp = (ans >= FULL) & (ans <= EXTRAPOLATED_S)
         ok = interp & ex.hit & ~ex.null
         err = np.degrees(angle_between(res.out_dir[ok], ex.out_dir[ok]))

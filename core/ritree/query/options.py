@@ -56,9 +56,10 @@ class QueryOptions:
                                        # (against every patch; a miss is answered exactly, a
                                        # patch none of the samples hit is traced), "trace"
                                        # traces it (the paper's two-patch condition)
-    solve_paths: bool = True           # a ray the tolerance or path identity refuses is
-                                       # solved exactly along its nearest usable sample's path
-                                       # where it takes that path (query/paths.py), else traced
+    solve_paths: bool = True           # a ray the tolerance or path identity refuses, or
+                                       # with too few usable samples, is solved exactly along
+                                       # its nearest usable sample's path where it takes that
+                                       # path (query/paths.py), else traced
     path_identity: bool = False        # trace rays whose usable samples differ in ray-tree hash
                                        # or whose leaves / cell the bake saw change path
     mirror_rays: str = "newton"        # mirrors ("ri" policy), a ray whose usable samples all
