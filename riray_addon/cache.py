@@ -123,8 +123,9 @@ def fingerprint(obj, depsgraph, memo: bool = True) -> str:
     return _fp_memo[key]
 
 
-def tree_status(obj, depsgraph, memo: bool = True) -> dict:
-    """{"state": missing | invalid | stale | fresh, "path", "message", "doc"}."""
+def tree_status(obj, depsgraph, memo: bool = True, current: str | None = None) -> dict:
+    """{"state": missing | invalid | stale | fresh, "path", "message", "doc"}; ``current``: the
+    object's fingerprint when the caller has it (else it is computed)."""
     path = cache_path(obj)
     doc = header(path)
     if doc is None:
@@ -133,7 +134,7 @@ def tree_status(obj, depsgraph, memo: bool = True) -> dict:
                if state == "missing" else f"{path} is not a riray cache file")
         return {"state": state, "path": path, "message": msg, "doc": None}
     baked = doc.get("meta", {}).get("fingerprint", "")
-    current = fingerprint(obj, depsgraph, memo)
+    current = fingerprint(obj, depsgraph, memo) if current is None else current
     if not baked or baked != current:
         return {"state": "stale", "path": path, "doc": doc,
                 "message": "the RI-Tree is stale (geometry, transform or material changed "

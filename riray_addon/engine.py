@@ -1,12 +1,13 @@
 """Render engine "RI-Tree Preview" (bl_idname RIRAY): the scene camera's view, F12 /
 bpy.ops.render.render (stills and animations), independent of any viewport.
 
-Per frame: export the scene from the render depsgraph (export.export_scene), build the core
+Per frame: export the scene from the render depsgraph (export.export_scene), make the core
 SceneTracer, then render shares of pixels through core's frame pipeline (render/frame.py:
 ``shade_share``); the object's rays are answered by the baked RI-Tree (backend.tree_answerer)
-when a fresh tree exists and loads,
-else traced exactly (the user is told; scene.riray.allow_tracing = False turns that into an
-error).
+when a fresh tree exists and loads, else traced exactly (the user is told;
+scene.riray.allow_tracing = False turns that into an error). The object's tracer, the environment and the loaded tree are kept between frames and
+renders while what they are built from is unchanged (reuse.py); the stats say what each frame
+exported, built and reused.
 scene.riray.samples camera rays per pixel (core render/film.py: one is the pixel centre; more
 are stratified and filtered with Blackman-Harris, 1.5 px, as Cycles does).
 Passes: Combined, "Traced" (the fraction of a pixel's samples that fell back to
@@ -33,9 +34,10 @@ from ..core.parallel import map_chunks
 from ..core.render.film import Film
 from ..core.render.frame import ExactAnswerer, shade_share, share_size
 from ..core.ritree.answers import is_traced
-from ..core.trace.scene_tracer import SceneTracer
-from . import backend, cache
-from .export import export_camera, export_scene
+from ..core.trace.patches import PatchTracer
+from ..core.trace.scene_tracer import SceneTracer, build_environment
+from . import backend, cache, reuse
+from .export import export_camera, export_scene, specular_fingerprint
 from .properties import query_options
 from .report import ExportError, Report
 
@@ -106,11 +108,18 @@ class RirayRenderEngine(bpy.types.RenderEngine):
         scene, view_layer = depsgraph.scene, depsgraph.view_layer
         t_start = time.perf_counter()
         target, core_scene = self._export(depsgraph)
+        export_s = time.perf_counter() - t_start
         region = render_region(scene.render, int(self.resolution_x), int(self.resolution_y))
         w, h = region[2:]
-        st = SceneTracer(core_scene)
-        answerer, status = self._answerer(depsgraph, target, st)
-        build_s = time.perf_counter() - t_start
+        frame_parts = reuse.FrameParts(reuse.MEMO)
+        obj_key = reuse.object_key(core_scene.object)
+        tracer = frame_parts.get("object", lambda: obj_key,
+                                 lambda: PatchTracer(core_scene.object))
+        env = frame_parts.get("environment", lambda: reuse.environment_key(core_scene, obj_key),
+                              lambda: build_environment(core_scene))
+        st = SceneTracer(core_scene, tracer=tracer, env=env)
+        answerer, status = self._answerer(depsgraph, target, st, frame_parts, obj_key)
+        build_s = time.perf_counter() - t_start - export_s
         film = region_film(core_scene.cameras[0], int(self.resolution_x),
                            int(self.resolution_y), region, scene.riray.samples)
         want_angle = bool(view_layer.riray.use_pass_angle_error) and answerer is not None
@@ -120,10 +129,10 @@ class RirayRenderEngine(bpy.types.RenderEngine):
             """One share of rays: its pixels' colour, traced and angle sums; object time and
             ray counts."""
             rays = film.rays(a, b)
-            color, tr, ang, obj_s, hits = _passes(st, shade_share(st, *rays, answerer), rays,
-                                                  want_angle)
+            share = shade_share(st, *rays, answerer)
+            color, tr, ang, obj_s, hits = _passes(st, share, rays, want_angle)
             part = film.develop(a, b, {"color": color}, {"traced": tr, "angle": ang})
-            return part, obj_s, hits, int(tr.sum())
+            return part, obj_s, hits, int(tr.sum()), share.stats.get("solved_along_path", 0)
 
         t_render = time.perf_counter()
         procs = render_processes(scene.riray.render_processes)
@@ -139,19 +148,19 @@ class RirayRenderEngine(bpy.types.RenderEngine):
         traced, angle = ((dev.box[k].ravel() / film.samples).astype(np.float32)
                          for k in ("traced", "angle"))
         hits, n_traced = sum(p[2] for p in parts), sum(p[3] for p in parts)
+        solved = sum(p[4] for p in parts)
         stats = {"frame": scene.frame_current, "width": w, "height": h,
                  "samples": film.samples, "object_pixels": hits, "traced_pixels": n_traced,
                  "traced_fraction": n_traced / hits if hits else 0.0,
+                 "solved_along_path": solved, "solved_fraction": solved / hits if hits else 0.0,
                  "object_time_s": sum(p[1] for p in parts),
-                 "render_time_s": time.perf_counter() - t_render, "export_build_s": build_s,
-                 "tree": status["state"],
+                 "render_time_s": time.perf_counter() - t_render, "export_s": export_s,
+                 "build_s": build_s, "build_parts_s": frame_parts.seconds,
+                 "reused": frame_parts.reused, "tree": status["state"],
                  "mode": "exact" if isinstance(answerer, ExactAnswerer) else "tree",
                  "processes": procs}
         self._write((color, traced, angle), region, stats)
-        self.update_stats("", f"RI-Tree Preview | traced {100 * stats['traced_fraction']:.1f}% "
-                              f"of {hits} object pixels | object {stats['object_time_s']:.2f} s | "
-                              f"render {stats['render_time_s']:.2f} s | export+build "
-                              f"{build_s:.2f} s")
+        self.update_stats("", status_line(stats))
 
     def _export(self, depsgraph):
         """(the specular object, the core scene with the render camera); ExportError if the
@@ -174,14 +183,23 @@ class RirayRenderEngine(bpy.types.RenderEngine):
         report.emit(self.report, "WARNING")
         return target, core_scene
 
-    def _answerer(self, depsgraph, target, st):
-        """(the tree's answerer, or None to trace the object exactly; the cache status)."""
-        status = cache.tree_status(target, depsgraph, memo=False)
+    def _answerer(self, depsgraph, target, st, frame_parts, obj_key):
+        """(the tree's answerer, or None to trace the object exactly; the cache status). The
+        loaded tree comes from ``frame_parts`` (reuse.py: kept while the file and the object,
+        ``obj_key``, are unchanged), with the occlusion proxy of the object's tracer."""
+        status = cache.tree_status(target, depsgraph, memo=False,
+                                   current=specular_fingerprint(st.scene.object))
         how = status["message"]
         if status["state"] == "fresh":
+            path, options = status["path"], query_options(target)
             try:
-                tree, _ = backend.load_tree(status["path"])
-                return backend.tree_answerer(st, tree, query_options(target)), status
+                tree = frame_parts.get("tree", lambda: reuse.tree_key(path, obj_key),
+                                       lambda: backend.load_tree(path)[0])
+                if options["solve_paths"]:      # kept on the tracer (a cached_property)
+                    frame_parts.timed("proxy", lambda: st.tracer.occlusion_proxy,
+                                      reused="occlusion_proxy" in vars(st.tracer))
+                return frame_parts.timed("query", lambda: backend.tree_answerer(
+                    st, tree, options)), status
             except (backend.TreeCacheError, OSError) as exc:   # damaged, gone, not this object's
                 how = f"the RI-Tree cache cannot be used ({exc})" + (
                     "" if "re-bake" in str(exc) else "; re-bake")
@@ -223,6 +241,18 @@ class RirayRenderEngine(bpy.types.RenderEngine):
         LAST_RENDER.clear()
         LAST_RENDER.update(image=img.copy(), traced=traced.reshape(h, w).copy(),
                            angle=angle.reshape(h, w).copy(), stats=stats)
+
+
+def status_line(stats: dict) -> str:
+    """The status bar's summary of a rendered frame's ``stats``."""
+    hits = stats["object_pixels"]
+    solved = (f" | solved along path {100 * stats['solved_fraction']:.1f}%"
+              if stats["solved_along_path"] else "")
+    reused = ", ".join(stats["reused"]) or "nothing"
+    return (f"RI-Tree Preview | traced {100 * stats['traced_fraction']:.1f}% of {hits} object "
+            f"pixels{solved} | object {stats['object_time_s']:.2f} s | render "
+            f"{stats['render_time_s']:.2f} s | export {stats['export_s']:.2f} s | build "
+            f"{stats['build_s']:.2f} s (reused {reused})")
 
 
 def render_region(render, width: int, height: int) -> tuple[int, int, int, int]:
@@ -287,13 +317,23 @@ def get_panels():
     return panels
 
 
+@bpy.app.handlers.persistent
+def _forget_parts(*_args):
+    """Another file was loaded: let go of the parts kept from renders (reuse.MEMO)."""
+    reuse.MEMO.clear()
+
+
 def register():
     bpy.utils.register_class(RirayRenderEngine)
     for panel in get_panels():
         panel.COMPAT_ENGINES.add(ENGINE_ID)
+    bpy.app.handlers.load_post.append(_forget_parts)
 
 
 def unregister():
+    if _forget_parts in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(_forget_parts)
+    reuse.MEMO.clear()
     for panel in get_panels():
         panel.COMPAT_ENGINES.discard(ENGINE_ID)
     bpy.utils.unregister_class(RirayRenderEngine)

@@ -568,6 +568,11 @@ def object_fingerprint(obj, depsgraph) -> str:
         so = export_object(obj, depsgraph, Report())
     except (ExportError, GeometryError):
         return ""
+    return specular_fingerprint(so)
+
+
+def specular_fingerprint(so) -> str:
+    """``object_fingerprint`` of an exported specular object (core SpecularObject)."""
     pts = [p.surface.points.reshape(-1, 3) if p.surface is not None else p.vertices
            for p in so.patches]
     allp = np.concatenate(pts)

@@ -19,18 +19,28 @@ from .shading import Environment
 PROXY_GRID = 16
 
 
+def build_environment(scene: Scene) -> Environment:
+    """The scene's environment (meshes, lights, world), with the object's tessellated proxy as
+    shadow caster when some light casts shadows."""
+    occluder = None
+    if any(light.shadows for light in scene.lights):
+        occluder = MeshSet([_proxy_mesh(p) for p in scene.object.patches])
+    return Environment(scene, occluder=occluder)
+
+
 class SceneTracer:
     """A scene with its acceleration structures built once: the object's patch tracer and the
-    environment (meshes, lights, world; the object's tessellated proxy as shadow caster when
-    some light casts shadows)."""
+    environment (``build_environment``).
 
-    def __init__(self, scene: Scene):
+    ``tracer`` / ``env``: parts already built for this scene (a PatchTracer of an object with
+    the same patches; an Environment of the same environment, lights and object), e.g. kept
+    from the previous frame of an animation; built here when None."""
+
+    def __init__(self, scene: Scene, tracer: PatchTracer | None = None,
+                 env: Environment | None = None):
         self.scene = scene
-        self.tracer = PatchTracer(scene.object)
-        occluder = None
-        if any(light.shadows for light in scene.lights):
-            occluder = MeshSet([_proxy_mesh(p) for p in scene.object.patches])
-        self.env = Environment(scene, occluder=occluder)
+        self.tracer = tracer if tracer is not None else PatchTracer(scene.object)
+        self.env = env if env is not None else build_environment(scene)
         self.box_lo = self.tracer.lo - 1e-6 * self.tracer.diag
         self.box_hi = self.tracer.hi + 1e-6 * self.tracer.diag
 

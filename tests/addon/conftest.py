@@ -20,6 +20,8 @@ ROOT = Path(__file__).resolve().parents[2]
 # RIRAY_SKIP_BPY=1 skips these tests even where bpy is installed (quick core-only runs).
 HAVE_BPY = importlib.util.find_spec("bpy") is not None and not os.environ.get("RIRAY_SKIP_BPY")
 EXT_PKG = "bl_ext.user_default.riray"
+# Add-on tests that never import bpy (add-on modules without bpy): they run everywhere.
+BPY_FREE = {"test_reuse.py"}
 
 
 def pytest_collection_modifyitems(config, items):
@@ -28,7 +30,8 @@ def pytest_collection_modifyitems(config, items):
     skip = pytest.mark.skip(reason="the bpy module is not installed (pip install bpy==5.0.1; "
                                    "`make test` installs it)")
     for item in items:
-        if Path(str(item.fspath)).resolve().is_relative_to(Path(__file__).parent):
+        path = Path(str(item.fspath)).resolve()
+        if path.is_relative_to(Path(__file__).parent) and path.name not in BPY_FREE:
             item.add_marker(skip)
 
 
