@@ -42,8 +42,9 @@ def tree_options(p):
                    "its exact first hit (first-hit, the default; a miss is then answered "
                    "exactly) or is traced (trace, the paper's two-patch condition)")
     p.add_argument("--solve-paths", choices=("on", "off"), default="on",
-                   help="a ray the tolerance (--max-error) or --path-identity would trace is "
-                   "first solved exactly along the path of its nearest sample (the same "
+                   help="a ray the tolerance (--max-error) or --path-identity would trace, or "
+                   "with too few usable samples, is first solved exactly along the path of "
+                   "its nearest sample (the same "
                    "surfaces in the same order); only where it leaves that path is it traced "
                    "(on, the default; off: trace every such ray)")
     p.add_argument("--null-rays", choices=("interpolate", "trace"), default="trace",

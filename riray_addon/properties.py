@@ -233,10 +233,11 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                                                 "Safer at edges, more rays traced")
     use_solve_paths: BoolProperty(name="Solve along sample paths", default=QUERY.solve_paths,
                                   description="A ray that Max error or Path identity would "
-                                              "trace is first solved exactly along the path "
-                                              "of its nearest sample (the same surfaces in "
-                                              "the same order); only a ray that leaves that "
-                                              "path is traced. Off: trace every such ray")
+                                              "trace, or with too few nearby samples, is "
+                                              "first solved exactly along the path of its "
+                                              "nearest sample (the same surfaces in the same "
+                                              "order); only a ray that leaves that path is "
+                                              "traced. Off: trace every such ray")
     many_classes: EnumProperty(
         name="More than two classes",
         items=[("FIRST_HIT", "First hit", "Take the class of the ray's exact first hit "
