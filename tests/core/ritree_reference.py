@@ -36,6 +36,8 @@ Rules (policy "ri"; paper sections 4.1-4.3, 5.1-5.4), per ray:
 2d. Path identity (``path_identity``), after 2b: a ray of a class whose usable corners (its
     class, not null) hold more than one ray-tree hash, or whose leaves or cell carry the
     PATH_CHANGE flag, is TRACED (path_change).
+2e. One path per blend (``max_error_deg`` set, ``path_identity`` off), after 2b: a ray of a
+    class whose usable corners hold more than one ray-tree hash is TRACED (path_change).
 3.  Usable: the query's class and not null.
 4.  Per-sample thresholds (``threshold_on="samples"``; angle = chord of the output directions,
     distance = of the output origins, |a - b|^2 > limit^2): pairs among the usable samples of
@@ -400,13 +402,17 @@ def within_tolerance(data, cell, tol):
     return all(e <= tol for e in errs)
 
 
+def one_hash(data, cell, pc):
+    """Rule 2e: the 16 samples of class ``pc`` that are not null share one ray-tree hash."""
+    return len({int(data.hash[s]) for row in cell.ids for s in row
+                if data.cls[s] == pc and not data.null[s]}) <= 1
+
+
 def same_path(data, cell, pc):
-    """Rule 2d: the 16 samples of class ``pc`` that are not null share one ray-tree hash, and
-    no leaf nor the cell carries the PATH_CHANGE flag."""
+    """Rule 2d: rule 2e holds, and no leaf nor the cell carries the PATH_CHANGE flag."""
     t = data.tree
-    hashes = {int(data.hash[s]) for row in cell.ids for s in row
-              if data.cls[s] == pc and not data.null[s]}
-    return len(hashes) <= 1 and not any(int(t.dir_flags[lf]) & PATH_CHANGE for lf in cell.leaves) \
+    return one_hash(data, cell, pc) \
+        and not any(int(t.dir_flags[lf]) & PATH_CHANGE for lf in cell.leaves) \
         and not int(t.vp_flags[cell.vnode]) & PATH_CHANGE
 
 
@@ -455,7 +461,7 @@ def answer_ri(data, cell, pc, o, d, tmax, opt, first=None):
         if not (getattr(opt, "mirror_rays", "interpolate") == "newton"
                 and data.mirror and calm(data, cell, first is not None)):
             return traced
-        if getattr(opt, "path_identity", False) and not same_path(data, cell, pc):
+        if not (same_path if getattr(opt, "path_identity", False) else one_hash)(data, cell, pc):
             return Answer(TRACED, WHY_PATH, info={"pc": pc, "path": True})
         if not newton_eligible(data, cell, pc, opt):
             return traced
@@ -469,7 +475,10 @@ def answer_ri(data, cell, pc, o, d, tmax, opt, first=None):
 
 def answer_untested(data, cell, pc, o, d, tmax, opt, first=None):
     """Rules 2d-11 (after the tolerance)."""
-    if getattr(opt, "path_identity", False) and not same_path(data, cell, pc):
+    if getattr(opt, "path_identity", False):
+        if not same_path(data, cell, pc):
+            return Answer(TRACED, WHY_PATH, info={"pc": pc, "path": True})
+    elif getattr(opt, "max_error_deg", None) is not None and not one_hash(data, cell, pc):
         return Answer(TRACED, WHY_PATH, info={"pc": pc, "path": True})
     samples = [[data.vals[s] for s in row] for row in cell.ids]
     usable = [[bool(data.cls[s] == pc and not data.null[s]) for s in row] for row in cell.ids]

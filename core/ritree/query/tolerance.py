@@ -1,6 +1,7 @@
-"""Rules that read what the bake measured in the ray's four leaves and viewpoint cell: the
-baked-error tolerance (QueryOptions.max_error_deg), the trusted misses, and path identity.
-Rays that fail them are traced."""
+"""Rules that read what the bake measured in the ray's four leaves and viewpoint cell, and the
+paths its samples take: the baked-error tolerance (QueryOptions.max_error_deg), the trusted
+misses, one path per blend, and path identity. Rays that fail them are traced (or solved
+along a sample's path, query/paths.py)."""
 
 from __future__ import annotations
 
@@ -64,19 +65,37 @@ def within_tolerance(q, b) -> None:
     b.narrow(ok)
 
 
-def same_path(q, b) -> None:
-    """Keep the open rays whose usable samples (their set's corners of their class, not null)
-    share one ray-tree hash and whose leaves and cell the bake did not see change path
-    (PATH_CHANGE); decided once per (set, class) unit. The others are traced (WHY_PATH)."""
-    tab, tree = q.table, q.tree
+def _one_hash(q, b):
+    """(unit_of, first, same): the open rays' (set, class) units and whether each unit's
+    usable samples (its set's corners of its class, not null) share one ray-tree hash."""
+    tab = q.table
     unit_of, first = group_rows(np.stack([b.set_of, b.pc], axis=1))
-    u_set = b.set_of[first]
-    ids = b.sets.ids[u_set]
+    ids = b.sets.ids[b.set_of[first]]
     use = (tab.cls[ids] == b.pc[first][:, None]) & ~tab.null[ids]
     h = tab.tree[ids].astype(np.int64)
     top = np.where(use, h, -1).max(axis=1)
     same = top <= np.where(use, h, np.iinfo(np.int64).max).min(axis=1)
-    u_ok = same & ~np.any(tree.dir_flags[b.sets.leaf[u_set]] & PATH_CHANGE, axis=1)
-    ok = u_ok[unit_of] & (tree.vp_flags[b.loc.vnode[b.go]] & PATH_CHANGE == 0)
+    return unit_of, first, same
+
+
+def one_path(q, b) -> None:
+    """Tolerance mode: keep the open rays whose usable samples share one ray-tree hash
+    (decided once per (set, class) unit). A blend of samples that take different paths (a
+    total internal reflection more or less, trapped against leaving, another surface) is an
+    interpolant of neither, however small the errors the bake's test rays met nearby: those
+    rays are refused (WHY_PATH), then solved along a sample's path or traced."""
+    unit_of, _, same = _one_hash(q, b)
+    ok = same[unit_of]
+    b.trace(b.loc.ray[b.go[~ok]], WHY_PATH)
+    b.narrow(ok)
+
+
+def same_path(q, b) -> None:
+    """Keep the open rays whose usable samples share one ray-tree hash (``one_path``) and
+    whose leaves and cell the bake did not see change path (PATH_CHANGE); decided once per
+    (set, class) unit. The others are traced (WHY_PATH)."""
+    unit_of, first, same = _one_hash(q, b)
+    u_ok = same & ~np.any(q.tree.dir_flags[b.sets.leaf[b.set_of[first]]] & PATH_CHANGE, axis=1)
+    ok = u_ok[unit_of] & (q.tree.vp_flags[b.loc.vnode[b.go]] & PATH_CHANGE == 0)
     b.trace(b.loc.ray[b.go[~ok]], WHY_PATH)
     b.narrow(ok)

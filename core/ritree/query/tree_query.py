@@ -15,7 +15,7 @@ from .options import QueryOptions
 from .paths import solve_paths
 from .raytree import raytree
 from .sets import group
-from .tolerance import check_misses, same_path, within_tolerance
+from .tolerance import check_misses, one_path, same_path, within_tolerance
 from .units import decide
 from .weights import weights
 
@@ -105,6 +105,8 @@ class TreeQuery:
             within_tolerance(self, b)
         if self.opt.path_identity:
             same_path(self, b)
+        elif self.opt.max_error_deg is not None:
+            one_path(self, b)
         if len(b.go) == 0:
             return
         with b.clock("decide"):
