@@ -4,8 +4,11 @@ Per scene: scene construction and acceleration-structure build time, the render'
 SIZE x SIZE over the worker processes, object-only and total time summed over chunks (CPU-side
 seconds, the paper's split), object rays per object-only second (rays handed to f /
 object-only seconds), and machine-independent work per object ray: BVH candidate pairs solved
-by Newton, Newton iterations, de Casteljau fallback pairs and surface events. Output: a
-Markdown table on stdout and the same rows (plus the machine) as JSON.
+by Newton, Newton iterations, de Casteljau fallback pairs and surface events. The environment
+pass per ray: its stages' CPU microseconds (environment hit, carried and environment shading)
+over the rays it handled (camera rays, the object's output and reflected rays), beside its
+numpy floor (bench/env_floor.py) on the view's camera rays. Output: a Markdown table on stdout
+and the same rows (plus the machine) as JSON.
 """
 
 from __future__ import annotations
@@ -19,9 +22,10 @@ from pathlib import Path
 import numpy as np
 
 from ..render.exact import render_exact
-from ..scene.camera import Shot
+from ..scene.camera import Shot, camera_rays
 from ..trace.scene_tracer import SceneTracer
 from ..scene.samples import SAMPLES, build
+from .env_floor import floor_cpu_s
 
 COLUMNS = (  # (key, header, format)
     ("scene", "scene", "{}"),
@@ -36,7 +40,10 @@ COLUMNS = (  # (key, header, format)
     ("newton_iters_per_ray", "Newton it/ray", "{:.2f}"),
     ("fallback_pairs_per_ray", "fallback/ray", "{:.3f}"),
     ("events_per_ray", "events/ray", "{:.2f}"),
+    ("environment_cpu_us_per_ray", "env CPU us/ray", "{:.2f}"),
+    ("environment_floor_cpu_us_per_ray", "env floor CPU us/ray", "{:.2f}"),
 )
+ENV_STAGES = ("environment_hit", "carried", "environment_shade")   # frame.py's stage names
 
 
 def _cpu_model() -> str:
@@ -69,6 +76,10 @@ def bench_scene(name: str, size: int = 300, camera: str = "close", workers: int 
                        progress=progress)
     c, s = res.stats["counts"], res.stats["summary"]
     rays = max(int(c["object_candidates"]), 1)
+    env_rays = c["camera_rays"] + c.get("output_rays", 0) + c.get("reflected_rays", 0)
+    env_cpu = sum(c[f"stage_{k}_cpu_s"] for k in ENV_STAGES)
+    o, d = camera_rays(*Shot(camera=camera, width=size, height=size).resolve(scene))
+    floor = floor_cpu_s(st.env, o, d, st.env.closest(o, d).tri)
     return {
         "scene": name, "camera": camera, "size": size,
         "scene_s": t1 - t0, "build_s": t2 - t1, "wall_s": float(s["wall_s"]),
@@ -78,6 +89,9 @@ def bench_scene(name: str, size: int = 300, camera: str = "close", workers: int 
         "pairs_per_ray": c["pairs"] / rays, "newton_iters_per_ray": c["newton_iters"] / rays,
         "fallback_pairs_per_ray": c["fallback_pairs"] / rays, "events_per_ray": c["events"] / rays,
         "null_rays": int(c.get("null_rays", 0)),
+        "environment_cpu_s": env_cpu, "environment_rays": int(env_rays),
+        "environment_cpu_us_per_ray": 1e6 * env_cpu / max(env_rays, 1),
+        "environment_floor_cpu_us_per_ray": 1e6 * floor / max(len(o), 1),
     }
 
 

@@ -3,13 +3,18 @@
 All meshes are concatenated into one triangle set. The ray-triangle test is Moller-Trumbore in
 float64, with triangles grown by BARY_EPS in barycentric units so that a ray through an edge or
 vertex shared by neighbouring triangles hits at least one of them, and triangle boxes padded so
-that slab-test rounding never drops a candidate.
+that culling by boxes never drops a candidate under rounding.
 
-Two tiers: *planes*, the few large parallelograms that two triangles of a mesh form (a room's
-walls and floor), are tested against every ray at once as one matrix product and a rectangle
-check (BIG_FRACTION, MAX_PLANES); the other triangles sit in a BVH that each ray walks only up
-to its nearest plane hit. Every reported hit (t, barycentrics) is Moller-Trumbore's on the
-triangle found, so the tiers change which work is done, not the arithmetic of a hit.
+Tiers, chosen by the set's size:
+- *quads* (trace/planar.py): parallelograms that two triangles form, tested against packets of
+  consecutive rays; all of them in a small set (up to SMALL_SET triangles: a room and its
+  furniture), else only the largest (BIG_FRACTION, MAX_PLANES: the walls around a big mesh);
+- a BVH (trace/bvh.py) over the other triangles, which each ray walks only up to its quad hit;
+- for segments that end at a given point (shadow rays toward a point light), an apex grid
+  (trace/apexgrid.py) over those other triangles instead of the BVH.
+A quad hit's t and barycentrics come from the quad's plane and parallelogram coordinates
+(Moller-Trumbore's on its triangle to rounding: ~1e-16 relative), other hits are
+Moller-Trumbore's; equal t goes to the lower triangle index in every tier.
 """
 
 from __future__ import annotations
@@ -19,25 +24,22 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..scene.model import Mesh
+from .apexgrid import ApexGrid, GridTooLarge
 from .boxes import slab_intervals
 from .bvh import BVH
+from .planar import BARY_EPS, PARALLEL_EPS, Packets, QuadSet, parallelograms
 
-BARY_EPS = 1e-10        # barycentric units: closes rounding gaps along shared edges/vertices
-PARALLEL_EPS = 1e-12    # |cos(ray, plane normal)| below which a ray counts as parallel: no hit
 BOX_PAD = 1e-9          # fraction of the scene's bounding-box diagonal added around each
-                        # triangle box, so the BVH slab test is conservative under rounding
-RAY_CHUNK = 16384       # rays per traversal chunk: bounds the (ray, triangle) pair arrays
+                        # triangle box, so that culling by boxes is conservative under rounding
+RAY_CHUNK = 16384        # rays per chunk: bounds the (ray, triangle) and packet arrays (~L2 size)
 LEAF_SIZE = 4           # triangles per BVH leaf
-# A parallelogram whose box diagonal is at least this fraction of the set's diagonal is tested
-# as a plane against every ray (one array op per chunk): such faces are met by a large share of
-# all rays, where the BVH would walk several nodes to reach them.
+SMALL_SET = 512         # a set of at most this many triangles tests all its parallelograms as
+                        # quads: a few hundred quads cost less per packet than a BVH walk per ray
+# In a larger set, a parallelogram whose box diagonal is at least this fraction of the set's
+# diagonal is a quad: such faces are met by a large share of all rays, where the BVH would walk
+# several nodes to reach them.
 BIG_FRACTION = 0.25
-MAX_PLANES = 16         # most parallelograms tested as planes (the largest): each costs about
-                        # 20 array ops per ray, a BVH walk of a room about 25 (ray, node) pairs
-QUAD_TOL = 1e-12        # |x + y - s1 - s2| / |s2 - s1| of two triangles (s1, x, s2), (s1, s2, y)
-                        # below which they form a parallelogram (rounding of exact corners)
-PAIR_ROUNDS = 3         # rounds of the pairing of triangles into parallelograms (a triangle can
-                        # pair with up to 3 neighbours; leftovers stay triangles in the BVH)
+MAX_PLANES = 16         # most parallelograms tested as quads in a larger set (the largest)
 
 
 @dataclass
@@ -74,47 +76,6 @@ class MeshHit:
     geo_normal: np.ndarray   # (N, 3)
     normal: np.ndarray       # (N, 3)
     uv: np.ndarray           # (N, 2), zeros for meshes without UVs
-
-
-def parallelograms(vertices, faces, candidates):
-    """Pairs of ``candidates`` (triangle indices) that share an edge (by vertex index) and form
-    a parallelogram, each triangle in at most one pair. Returns (ta, tb, q0, eu, ev): the
-    parallelogram is q0 + [0,1] eu + [0,1] ev, ta covers its part with u >= v, tb the rest."""
-    cand = np.asarray(candidates, dtype=np.int64)
-    f = faces[cand]
-    a, b = f, np.roll(f, -1, axis=1)                 # edge k: corners k, k+1; opposite k+2
-    lo, hi = np.minimum(a, b).ravel(), np.maximum(a, b).ravel()
-    key = lo * len(vertices) + hi
-    order = np.argsort(key, kind="stable")
-    ks = key[order]
-    same = np.flatnonzero(ks[1:] == ks[:-1])
-    # edges shared by exactly two candidates (not three or more)
-    single = ((same == 0) | (ks[same - 1] != ks[same])) & \
-             ((same + 2 >= len(ks)) | (ks[np.minimum(same + 2, len(ks) - 1)] != ks[same]))
-    same = same[single]
-    e1, e2 = order[same], order[same + 1]            # (candidate * 3 + edge slot)
-    i, j = e1 // 3, e2 // 3
-    s1, s2 = vertices[lo[e1]], vertices[hi[e1]]
-    x = vertices[f[i, (e1 % 3 + 2) % 3]]
-    y = vertices[f[j, (e2 % 3 + 2) % 3]]
-    span = np.linalg.norm(s2 - s1, axis=1)
-    ok = (i != j) & (np.linalg.norm(np.cross(x - s1, y - s1), axis=1) > 0) & \
-        (np.linalg.norm(x + y - s1 - s2, axis=1) <= QUAD_TOL * span)
-    i, j, s1, x, y = i[ok], j[ok], s1[ok], x[ok], y[ok]
-    keep = np.zeros(len(i), bool)
-    free = np.ones(len(i), bool)
-    for _ in range(PAIR_ROUNDS):                     # the first free pair of both triangles
-        first = np.full(len(cand), len(i))
-        idx = np.flatnonzero(free)
-        np.minimum.at(first, i[idx], idx)
-        np.minimum.at(first, j[idx], idx)
-        take = free & (first[i] == np.arange(len(i))) & (first[j] == np.arange(len(i)))
-        keep |= take
-        used = np.zeros(len(cand), bool)
-        used[i[take]] = used[j[take]] = True
-        free &= ~used[i] & ~used[j]
-    i, j, s1, x, y = i[keep], j[keep], s1[keep], x[keep], y[keep]
-    return cand[i], cand[j], s1, x - s1, y - s1
 
 
 class MeshSet:
@@ -170,6 +131,12 @@ class MeshSet:
         vn_len = np.linalg.norm(vn, axis=1)
         self.vertex_normals = vn / np.where(vn_len > 0, vn_len, 1.0)[:, None]
         self.tri_smooth = cat(smooth, (0,), bool)
+        # per triangle and corner, as columns (corner, axis, triangle): gathered per hit
+        corner = lambda a: np.ascontiguousarray(a[self.faces].transpose(1, 2, 0))
+        self._corner_xyz = corner(self.vertices)
+        self._corner_nrm = corner(self.vertex_normals)
+        self._corner_uv = corner(self.uvs)
+        self._geo_t = np.ascontiguousarray(self.geo_normal.T)
         self._v0 = np.ascontiguousarray(v0.T)
         self._e1 = np.ascontiguousarray(e1.T)
         self._e2 = np.ascontiguousarray(e2.T)
@@ -177,52 +144,49 @@ class MeshSet:
         hi = np.maximum(np.maximum(v0, v1), v2)
         diag = float(np.linalg.norm(hi.max(0) - lo.min(0))) if len(lo) else 0.0
         pad = BOX_PAD * max(diag, 1.0)
+        self.pad = pad
         self.bvh = BVH.build(lo - pad, hi + pad, LEAF_SIZE)
-        self._build_planes(lo, hi, pad, diag)
+        self._build_tiers(lo, hi, pad, diag)
 
-    def _build_planes(self, lo, hi, pad, diag):
-        """The plane tier (see the module docstring) and the BVH over the other triangles."""
-        size = np.linalg.norm(hi - lo, axis=1)
-        # a parallelogram's triangle spans at least half its box diagonal
-        big = np.flatnonzero(size >= 0.5 * BIG_FRACTION * diag) if diag > 0 else np.zeros(0, int)
-        ta, tb, q0, eu, ev = parallelograms(self.vertices, self.faces, big)
-        qsize = np.linalg.norm(np.abs(eu) + np.abs(ev), axis=1)     # box diagonal
-        sel = np.flatnonzero(qsize >= BIG_FRACTION * diag)
-        sel = sel[np.argsort(-qsize[sel], kind="stable")[:MAX_PLANES]]
-        ta, tb, q0, eu, ev = ta[sel], tb[sel], q0[sel], eu[sel], ev[sel]
-        n = np.cross(eu, ev)
-        n /= np.linalg.norm(n, axis=1)[:, None]
-        g11, g12, g22 = (np.einsum("ij,ij->i", p, q) for p, q in ((eu, eu), (eu, ev), (ev, ev)))
-        det = (g11 * g22 - g12 * g12)[:, None]
-        a = (g22[:, None] * eu - g12[:, None] * ev) / det          # dual basis: u = a.(p - q0)
-        b = (g11[:, None] * ev - g12[:, None] * eu) / det          # v = b.(p - q0)
-        w = np.concatenate([n, a, b])                               # (3P, 3)
-        self._plane_wd = w
-        self._plane_wo = np.concatenate([-n, a, b])
-        half = np.repeat([0.0, 0.5, 0.5], len(n))
-        self._plane_c = np.einsum("ij,ij->i", self._plane_wo, np.concatenate([q0, q0, q0])) + half
-        self._plane_tri = np.stack([ta, tb])                        # (2, P): u >= v, u < v
-        rest = np.ones(self.num_triangles, bool)
+    def _build_tiers(self, lo, hi, pad, diag):
+        """The quads (see the module docstring) and the BVH over the other triangles."""
+        m = self.num_triangles
+        if m <= SMALL_SET:
+            cand = np.arange(m)
+        else:   # a parallelogram's triangle spans at least half its box diagonal
+            cand = np.flatnonzero(np.linalg.norm(hi - lo, axis=1) >= 0.5 * BIG_FRACTION * diag)
+        ta, tb, q0, eu, ev = parallelograms(self.vertices, self.faces, cand)
+        if m > SMALL_SET:
+            qsize = np.linalg.norm(np.abs(eu) + np.abs(ev), axis=1)     # box diagonal
+            sel = np.flatnonzero(qsize >= BIG_FRACTION * diag)
+            sel = sel[np.argsort(-qsize[sel], kind="stable")[:MAX_PLANES]]
+            ta, tb, q0, eu, ev = ta[sel], tb[sel], q0[sel], eu[sel], ev[sel]
+        corners = lambda t: self.vertices[self.faces[t]]
+        self.quads = QuadSet(ta, tb, q0, eu, ev, corners(ta), corners(tb), pad) if len(ta) \
+            else None
+        rest = np.ones(m, bool)
         rest[ta] = rest[tb] = False
         self._rest = np.flatnonzero(rest)                           # BVH tier triangle ids
-        self._rest_bvh = (self.bvh if rest.all() else
-                          BVH.build(lo[rest] - pad, hi[rest] + pad, LEAF_SIZE))
         r_lo, r_hi = lo[rest] - pad, hi[rest] + pad
-        self._rest_box = ((r_lo.min(0), r_hi.max(0)) if len(r_lo) else None)
+        self._rest_bvh = self.bvh if rest.all() else BVH.build(r_lo, r_hi, LEAF_SIZE)
+        self._rest_box = (r_lo.min(0), r_hi.max(0)) if rest.any() else None
+        self._grids = {}                                            # (apex, pad) -> ApexGrid
 
     @property
     def num_triangles(self) -> int:
         return int(self.faces.shape[0])
 
     @property
-    def num_planes(self) -> int:
-        """Parallelograms tested as planes."""
-        return int(self._plane_tri.shape[1])
+    def num_quads(self) -> int:
+        """Parallelograms tested as quads against packets of rays."""
+        return 0 if self.quads is None else len(self.quads)
 
     def _solve(self, o, d, r, p):
-        """Moller-Trumbore on pairs (ray r, triangle p); o, d (3, N). Returns (det_ok, t, b1,
-        b2), whatever the barycentrics and t."""
-        dx, dy, dz = d[0][r], d[1][r], d[2][r]
+        """Moller-Trumbore on pairs (ray r, triangle p); o, d (3, N); r None: ray i is pair i.
+        Returns (det_ok, t, b1, b2), whatever the barycentrics and t."""
+        if r is not None:
+            o, d = (o[0][r], o[1][r], o[2][r]), (d[0][r], d[1][r], d[2][r])
+        dx, dy, dz = d
         ax, ay, az = self._e1[0][p], self._e1[1][p], self._e1[2][p]
         bx, by, bz = self._e2[0][p], self._e2[1][p], self._e2[2][p]
         px = dy * bz - dz * by
@@ -231,9 +195,9 @@ class MeshSet:
         det = ax * px + ay * py + az * pz
         ok = np.abs(det) > PARALLEL_EPS * self.area2[p]
         inv = 1.0 / np.where(ok, det, 1.0)
-        sx = o[0][r] - self._v0[0][p]
-        sy = o[1][r] - self._v0[1][p]
-        sz = o[2][r] - self._v0[2][p]
+        sx = o[0] - self._v0[0][p]
+        sy = o[1] - self._v0[1][p]
+        sz = o[2] - self._v0[2][p]
         b1 = (sx * px + sy * py + sz * pz) * inv
         qx = sy * az - sz * ay
         qy = sz * ax - sx * az
@@ -265,7 +229,8 @@ class MeshSet:
 
     def closest(self, origins, dirs, tmin=None, tmax=None) -> RayHits:
         """Closest hit with t in [tmin (default 0), tmax (default inf)] of each ray: triangle,
-        t and barycentrics, Moller-Trumbore's on that triangle."""
+        t and barycentrics, Moller-Trumbore's on that triangle; equal t goes to the lower
+        triangle index. Rays in a coherent order (neighbours next to each other) are fastest."""
         origins, dirs, tmin, tmax, n = self._prep(origins, dirs, tmin, tmax)
         t = np.full(n, np.inf)
         tri = np.full(n, -1, dtype=np.int64)
@@ -273,52 +238,18 @@ class MeshSet:
         for c0 in range(0, n, RAY_CHUNK):
             sl = slice(c0, min(n, c0 + RAY_CHUNK))
             o, d, t0, t1 = origins[sl], dirs[sl], tmin[sl], tmax[sl]
-            pt, ptri = self._planes_closest(o, d, t0, t1)
-            bt, btri = self._rest_closest(o, d, t0, np.minimum(t1, pt))
-            near = btri >= 0                       # a BVH hit lies at or before the plane hit
-            ptri[near] = btri[near]
-            idx = np.flatnonzero(ptri >= 0)
+            if self.quads is not None:
+                t[sl], tri[sl], b1[sl], b2[sl] = self.quads.closest(
+                    Packets(np.ascontiguousarray(o.T), np.ascontiguousarray(d.T), t0, t1))
+            if len(self._rest) == 0:
+                continue
+            qt, qtri = t[sl], tri[sl]
+            bt, btri = self._rest_closest(o, d, t0, np.minimum(t1, qt))
+            idx = np.flatnonzero((btri >= 0) & ((bt < qt) | (btri < qtri)))   # bt <= qt
             _, th, b1h, b2h = self._solve(np.ascontiguousarray(o[idx].T),
-                                          np.ascontiguousarray(d[idx].T),
-                                          np.arange(len(idx)), ptri[idx])
-            t[c0 + idx], tri[c0 + idx], b1[c0 + idx], b2[c0 + idx] = th, ptri[idx], b1h, b2h
+                                          np.ascontiguousarray(d[idx].T), None, btri[idx])
+            t[c0 + idx], tri[c0 + idx], b1[c0 + idx], b2[c0 + idx] = th, btri[idx], b1h, b2h
         return RayHits(t, tri, b1, b2)
-
-    def _plane_test(self, o, d, tmin, tmax):
-        """(t, u, v), each (P, n): where rays o + t d cross the planes and the parallelogram
-        coordinates there, less 1/2; t = inf where the crossing is outside [tmin, tmax] or the
-        parallelogram (grown by BARY_EPS) or the ray runs parallel. Rows are planes, so every
-        array op runs over contiguous memory."""
-        p = self.num_planes
-        od = self._plane_wo @ o.T
-        od -= self._plane_c[:, None]                # n.(q0 - o), a.(o - q0) - 1/2, b.(...)
-        dd = self._plane_wd @ d.T                   # n.d, a.d, b.d
-        dn = dd[:p]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.divide(od[:p], dn, out=od[:p])
-            u = np.multiply(t, dd[p:2 * p], out=dd[p:2 * p])
-            u += od[p:2 * p]
-            v = np.multiply(t, dd[2 * p:], out=dd[2 * p:])
-            v += od[2 * p:]
-            bad = np.abs(dn) <= PARALLEL_EPS        # a parallel ray's t, u, v may be NaN
-            bad |= t < tmin
-            bad |= t > tmax
-            bad |= np.abs(u) > 0.5 + BARY_EPS
-            bad |= np.abs(v) > 0.5 + BARY_EPS
-        t[bad] = np.inf
-        return t, u, v
-
-    def _planes_closest(self, o, d, tmin, tmax):
-        """(t, tri) of the nearest plane-tier hit per ray (inf / -1 where none)."""
-        n = len(o)
-        if self.num_planes == 0:
-            return np.full(n, np.inf), np.full(n, -1, dtype=np.int64)
-        t, u, v = self._plane_test(o, d, tmin, tmax)
-        k = np.argmin(t, axis=0)
-        cols = np.arange(n)
-        tk = t[k, cols]
-        tri = self._plane_tri[(u[k, cols] < v[k, cols]).astype(np.int64), k]
-        return tk, np.where(tk < np.inf, tri, -1)
 
     def _rest_rays(self, o, d, tmin, tmax):
         """Indices of the rays whose segment meets the box of the BVH tier's triangles."""
@@ -341,73 +272,109 @@ class MeshSet:
             tri[idx] = np.where(p >= 0, rest[np.maximum(p, 0)], -1)
         return t, tri
 
+    def surface(self, tri, b1, b2):
+        """(point, geo_normal, normal), each (3, k), at barycentrics (b1, b2) of triangles
+        ``tri`` (k,) (all hit): columns, so per-point arithmetic runs over whole rows."""
+        w = (1.0 - b1 - b2, b1, b2)
+        tv = self._corner_xyz.take(tri, axis=2)                     # (corner, axis, k)
+        point = w[0] * tv[0] + w[1] * tv[1] + w[2] * tv[2]
+        geo = self._geo_t.take(tri, axis=1)
+        nrm = geo
+        sm = np.flatnonzero(self.tri_smooth[tri])
+        if len(sm):
+            vn = self._corner_nrm.take(tri[sm], axis=2)
+            ns = w[0][sm] * vn[0] + w[1][sm] * vn[1] + w[2][sm] * vn[2]
+            ln = np.sqrt(ns[0] * ns[0] + ns[1] * ns[1] + ns[2] * ns[2])
+            good = ln > 0
+            nrm = geo.copy()
+            nrm[:, sm[good]] = ns[:, good] / ln[good]
+        return point, geo, nrm
+
+    def uv_at(self, tri, b1, b2) -> np.ndarray:
+        """(2, k) interpolated UVs at barycentrics (b1, b2) of triangles ``tri`` (k,)."""
+        t = self._corner_uv.take(tri, axis=2)
+        return (1.0 - b1 - b2) * t[0] + b1 * t[1] + b2 * t[2]
+
     def record(self, hits: RayHits) -> MeshHit:
         """The surface at each hit: point, normals, uv and mesh."""
         t, tri = hits.t, hits.tri
         n = len(t)
         hit = tri >= 0
         idx = np.flatnonzero(hit)
-        p = tri[idx]
-        b1h, b2h = hits.b1[idx], hits.b2[idx]
-        b0h = 1.0 - b1h - b2h
-        f = self.faces[p]
-        w = (b0h[:, None], b1h[:, None], b2h[:, None])
-        point = np.zeros((n, 3))
-        point[idx] = sum(w[i] * self.vertices[f[:, i]] for i in range(3))
-        geo = np.zeros((n, 3))
-        geo[idx] = self.geo_normal[p]
-        nrm = geo.copy()
-        sm = self.tri_smooth[p]
-        if sm.any():
-            ns = sum(w[i][sm] * self.vertex_normals[f[sm, i]] for i in range(3))
-            ln = np.linalg.norm(ns, axis=1)
-            good = ln > 0
-            sel = idx[sm][good]
-            nrm[sel] = ns[good] / ln[good, None]
-        uv = np.zeros((n, 2))
-        uv[idx] = sum(w[i] * self.uvs[f[:, i]] for i in range(3))
+        p, b1, b2 = tri[idx], hits.b1[idx], hits.b2[idx]
+        point, geo, nrm, uv = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 2))
+        point[idx], geo[idx], nrm[idx] = (a.T for a in self.surface(p, b1, b2))
+        uv[idx] = self.uv_at(p, b1, b2).T
         mesh = np.full(n, -1, dtype=np.int64)
         mesh[idx] = self.tri_mesh[p]
         return MeshHit(hit=hit, t=t, tri=tri, mesh=mesh, b1=hits.b1, b2=hits.b2, point=point,
                        geo_normal=geo, normal=nrm, uv=uv)
 
-    def any_hit(self, origins, dirs, tmin=None, tmax=None) -> np.ndarray:
+    def any_hit(self, origins, dirs, tmin=None, tmax=None, apex=None,
+                apex_pad: float = 0.0) -> np.ndarray:
         """(N,) bool: does the segment [tmin (default 0), tmax (default inf)] hit a triangle.
-        A ray leaves the BVH walk at its first hit; rays a plane blocks do not walk it."""
+        ``apex`` (3,): a point the segments end at, within ``apex_pad`` (shadow rays toward a
+        point light): packets are then bounded from it and the triangles off the quads found
+        in an apex grid (built once per apex and pad, see ``prepare_apex``); segments that do
+        not end there (or start before t = 0) are tested as without an apex."""
         origins, dirs, tmin, tmax, n = self._prep(origins, dirs, tmin, tmax)
+        apex = None if apex is None else np.asarray(apex, dtype=np.float64)
         out = np.zeros(n, dtype=bool)
         for c0 in range(0, n, RAY_CHUNK):
             sl = slice(c0, min(n, c0 + RAY_CHUNK))
-            o, d, t0, t1 = origins[sl], dirs[sl], tmin[sl], tmax[sl]
-            blocked = self._planes_any(o, d, t0, t1)
-            free = np.flatnonzero(~blocked)
-            idx = free[self._rest_rays(o[free], d[free], t0[free], t1[free])]
-            if len(idx):
-                oi, di, a, b = o[idx], d[idx], t0[idx], t1[idx]
-                ot, dt = np.ascontiguousarray(oi.T), np.ascontiguousarray(di.T)
-                rest = self._rest
-                blocked[idx] = self._rest_bvh.any_hit(
-                    oi, di, a, b, lambda r, q: self._intersect(ot, dt, a, b, r, rest[q])[0])
-            out[sl] = blocked
+            ot, dt = np.ascontiguousarray(origins[sl].T), np.ascontiguousarray(dirs[sl].T)
+            t0, t1 = tmin[sl], tmax[sl]
+            if apex is None:
+                out[sl] = self._any_cols(ot, dt, t0, t1, None, 0.0)
+                continue
+            with np.errstate(invalid="ignore"):      # inf * 0 for endless segments
+                e = [ot[i] + t1 * dt[i] - apex[i] for i in range(3)]
+            ends = (e[0] * e[0] + e[1] * e[1] + e[2] * e[2] <= apex_pad * apex_pad) & (t0 >= 0)
+            if ends.all():
+                out[sl] = self._any_cols(ot, dt, t0, t1, apex, apex_pad)
+                continue
+            for rows, a in ((np.flatnonzero(ends), apex), (np.flatnonzero(~ends), None)):
+                out[c0 + rows] = self._any_cols(ot.take(rows, axis=1), dt.take(rows, axis=1),
+                                                t0[rows], t1[rows], a, apex_pad)
         return out
 
-    def _planes_any(self, o, d, tmin, tmax):
-        """(n,) bool: does some plane-tier parallelogram cross each segment. Only rays with a
-        plane whose sides hold both segment ends differently (or one on it) are tested in
-        full."""
-        n = len(o)
-        if self.num_planes == 0:
-            return np.zeros(n, bool)
-        p = self.num_planes
-        with np.errstate(invalid="ignore"):
-            dn = self._plane_wd[:p] @ d.T
-            side = self._plane_wo[:p] @ o.T - self._plane_c[:p, None]    # n.(q0 - o)
-            s0 = tmin * dn - side                   # signed plane distance at both ends
-            s1 = tmax * dn - side                   # (inf for an endless segment)
-            same = (s0 > 0) & (s1 > 0) | (s0 < 0) & (s1 < 0)
-        rows = np.flatnonzero(~same.all(axis=0))
-        out = np.zeros(n, bool)
-        if len(rows):
-            t, _, _ = self._plane_test(o[rows], d[rows], tmin[rows], tmax[rows])
-            out[rows] = (t < np.inf).any(axis=0)
+    def _any_cols(self, ot, dt, tmin, tmax, apex, apex_pad):
+        """``any_hit`` of segments given as columns ot, dt (3, k)."""
+        out = (self.quads.any_hit(Packets(ot, dt, tmin, tmax, apex, apex_pad))
+               if self.quads is not None else np.zeros(ot.shape[1], bool))
+        if len(self._rest) == 0 or out.all():
+            return out
+        if self.quads is None:
+            return self._rest_any(ot, dt, tmin, tmax, apex, apex_pad)
+        free = np.flatnonzero(~out)
+        out[free] = self._rest_any(ot.take(free, axis=1), dt.take(free, axis=1), tmin[free],
+                                   tmax[free], apex, apex_pad)
+        return out
+
+    def prepare_apex(self, apex, apex_pad: float) -> ApexGrid | None:
+        """The apex grid of the non-quad triangles for segments ending within ``apex_pad`` of
+        ``apex`` (built on first use; None where it would be too large: the BVH serves)."""
+        key = (tuple(float(x) for x in apex), float(apex_pad))
+        if key not in self._grids:
+            try:
+                tris = self.vertices[self.faces[self._rest]]
+                self._grids[key] = ApexGrid(apex, tris, self._rest, apex_pad + self.pad)
+            except GridTooLarge:
+                self._grids[key] = None
+        return self._grids[key]
+
+    def _rest_any(self, ot, dt, tmin, tmax, apex, apex_pad):
+        """(k,) bool: does a non-quad triangle cross each segment (columns ot, dt (3, k); all
+        ending within ``apex_pad`` of ``apex`` where it is given)."""
+        hit_fn = lambda r, p: self._intersect(ot, dt, tmin, tmax, r, p)[0]
+        grid = self.prepare_apex(apex, apex_pad) if apex is not None else None
+        if grid is not None:
+            return grid.any_hit(ot - grid.apex[:, None], hit_fn)
+        out = np.zeros(ot.shape[1], bool)
+        o, d = ot.T, dt.T
+        idx = self._rest_rays(o, d, tmin, tmax)
+        if len(idx):
+            rest = self._rest
+            out[idx] = self._rest_bvh.any_hit(o[idx], d[idx], tmin[idx], tmax[idx],
+                                              lambda r, q: hit_fn(idx[r], rest[q]))
         return out

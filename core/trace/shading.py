@@ -8,8 +8,10 @@ point light  E = color * power / (4 pi r^2) * max(0, n.l)
 sun          E = color * strength * max(0, n.l)
 and n the shading normal turned towards the incoming ray. Shadow rays are cast only for lights
 with ``shadows`` set, only from points the light faces, against the environment meshes and the
-optional occluder (a tessellated proxy of the specular object). Rays that hit nothing see
-eval_world(direction).
+optional occluder (a tessellated proxy of the specular object); toward a point light they are
+tested as segments ending at it (MeshSet.any_hit's apex: packets bounded from the light, apex
+grids). Rays that hit nothing see eval_world(direction). Hit points are shaded as columns
+(3, k), one material group at a time; constant colours are not evaluated per point.
 """
 
 from __future__ import annotations
@@ -24,7 +26,10 @@ from .textures import eval_texture, eval_world
 SHADOW_OFFSET = 1e-7    # fraction of the scene's bounding-box diagonal (at least 1 m): shadow
                         # ray origins move this far along the facing geometric normal so that
                         # a surface does not shadow itself through rounding
-SHADE_CHUNK = 65536     # rays shaded at once: bounds the per-chunk hit records
+APEX_PAD = 4.0          # shadow-ray offsets: a shadow ray starts one offset off its surface
+                        # point and aims from that point at the light, so it passes within one
+                        # offset of the light; the apex grids allow this many
+SHADE_CHUNK = 8192      # rays shaded at once: bounds the per-chunk arrays (~L2 cache size)
 # Radiance is clamped here so that images stay finite in float32 (max 3.4e38) after the
 # renderer's factors (tint, at most the scene format's 1e12) for any valid scene; real scenes
 # are many orders below it (the sun's disc is ~2e7 W/m^2/sr).
@@ -59,6 +64,11 @@ class Environment:
                 raise ValueError(f"mesh {m.name!r}: material {mat.name!r} has a uv-mapped "
                                  f"texture but the mesh has no uvs")
             self.materials.append(mat)
+        # one shading group per distinct material, per triangle
+        names = list(dict.fromkeys(m.material for m in scene.meshes))
+        self._materials = [scene.materials[k] for k in names]
+        mesh_group = np.array([names.index(m.material) for m in scene.meshes], dtype=np.int64)
+        self._tri_material = mesh_group[self.meshes.tri_mesh]
         for light in self.lights:
             if light.kind not in ("point", "sun"):
                 raise ValueError(f"light {light.name!r}: kind must be 'point' or 'sun', "
@@ -68,6 +78,11 @@ class Environment:
         diag = float(np.linalg.norm(pts.max(0) - pts.min(0))) if len(pts) else 0.0
         self.offset = SHADOW_OFFSET * max(diag, 1.0)
         self.stats = {"env_rays": 0, "shadow_rays": 0}
+        for light in self.lights:             # built here, before a render forks its workers
+            if light.kind == "point" and light.shadows:
+                for ms in (self.meshes, self.occluder):
+                    if ms is not None:
+                        ms.prepare_apex(light.position, APEX_PAD * self.offset)
 
     def closest(self, origins, dirs, tmin=None, tmax=None) -> RayHits:
         """The closest environment hit of each ray in [tmin, tmax] (defaults 0, inf), a hit
@@ -97,53 +112,68 @@ class Environment:
     def _shade_chunk(self, dirs, hits: RayHits):
         """Radiance along rays ``dirs`` with closest hits ``hits``: the world where they miss;
         emission + albedo / pi * (ambient + irradiance) where they hit, the irradiance (and
-        its shadow rays) found once for every point with an albedo, whatever its material."""
-        hit = self.meshes.record(hits)
+        its shadow rays) found once for every point with an albedo, whatever its material.
+        Hit points are worked on as columns (3, k): per-point arithmetic runs over rows."""
         n = len(dirs)
-        out = np.zeros((n, 3))
-        miss = ~hit.hit
-        if miss.any():
-            out[miss] = eval_world(self.world, dirs[miss])
-        idx = np.flatnonzero(hit.hit)
+        out = np.empty((3, n))
+        hit = hits.tri >= 0
+        idx = np.flatnonzero(hit)
+        if len(idx) < n:
+            miss = np.flatnonzero(~hit)
+            _put(out, miss, eval_world(self.world, dirs[miss]).T)
         if len(idx) == 0:
-            return out
+            return out.T
+        if len(idx) == n:                               # all hit: no gathers
+            tri, b1, b2, d = hits.tri, hits.b1, hits.b2, np.ascontiguousarray(dirs.T)
+        else:
+            tri, b1, b2 = hits.tri[idx], hits.b1[idx], hits.b2[idx]
+            d = np.ascontiguousarray(dirs[idx].T)
+        point, geo, normal = self.meshes.surface(tri, b1, b2)
         # normals turned towards the incoming ray (the geometric side decides)
-        d = dirs[idx]
-        back = np.einsum("ij,ij->i", hit.geo_normal[idx], d) > 0
-        flip = np.where(back, -1.0, 1.0)[:, None]
-        normal, geo, point = hit.normal[idx] * flip, hit.geo_normal[idx] * flip, hit.point[idx]
-        emission = np.zeros((len(idx), 3))
-        albedo = np.zeros((len(idx), 3))
-        lit = np.zeros(len(idx), bool)
-        mesh = hit.mesh[idx]
-        order = np.argsort(mesh, kind="stable")
-        starts = np.flatnonzero(np.r_[True, mesh[order][1:] != mesh[order][:-1]])
-        for sel in np.split(order, starts[1:]):        # one group per mesh, rays in order
-            mat = self.materials[int(mesh[sel[0]])]
+        back = geo[0] * d[0] + geo[1] * d[1] + geo[2] * d[2] > 0
+        flip = np.where(back, -1.0, 1.0)
+        geo, normal = geo * flip, normal * flip
+        k = len(idx)
+        emission, albedo = np.zeros((3, k)), np.zeros((3, k))
+        lit = np.zeros(k, bool)
+        group = self._tri_material[tri]
+        for g in np.flatnonzero(np.bincount(group, minlength=len(self._materials))):
+            sel = np.flatnonzero(group == g)
+            mat = self._materials[g]
+            at = lambda a: a.take(sel, axis=1).T
             if mat.kind == "nodes":
                 cl = evaluate(mat.graph, ShadingPoints(
-                    position=point[sel], normal=normal[sel], true_normal=geo[sel],
-                    incoming=-d[sel], uv=hit.uv[idx[sel]], backfacing=back[sel]))
-                emission[sel], albedo[sel] = cl.emission, cl.albedo
-                lit[sel] = np.any(cl.albedo != 0, axis=1)   # only these cast shadow rays
+                    position=at(point), normal=at(normal), true_normal=at(geo), incoming=-at(d),
+                    uv=self.meshes.uv_at(tri[sel], b1[sel], b2[sel]).T, backfacing=back[sel]))
+                alb = np.broadcast_to(cl.albedo, (len(sel), 3)).T
+                _put(emission, sel, np.broadcast_to(cl.emission, (len(sel), 3)).T)
+                _put(albedo, sel, alb)
+                lit[sel] = np.any(alb != 0, axis=0)             # only these cast shadow rays
                 continue
             tex = mat.color
+            if tex.kind == "constant":                  # not evaluated per point
+                col = np.broadcast_to(np.asarray(tex.color, dtype=np.float64)[:, None],
+                                      (3, len(sel)))
+            else:
+                col = eval_texture(tex, at(point), self.meshes.uv_at(tri[sel], b1[sel],
+                                                                     b2[sel]).T).T
             if mat.kind == "emission":
-                if tex.kind == "constant":
-                    emission[sel] = np.asarray(tex.color, dtype=np.float64) * mat.strength
-                else:
-                    emission[sel] = eval_texture(tex, point[sel], hit.uv[idx[sel]]) * mat.strength
-                continue
-            albedo[sel] = (tex.color if tex.kind == "constant"
-                           else eval_texture(tex, point[sel], hit.uv[idx[sel]]))
-            lit[sel] = True
+                _put(emission, sel, col * mat.strength)
+            else:
+                _put(albedo, sel, col)
+                lit[sel] = True
         on = np.flatnonzero(lit)
-        off = np.flatnonzero(~lit)
-        out[idx[off]] = emission[off]
+        if len(on) < k:
+            off = np.flatnonzero(~lit)
+            _put(out, idx[off], emission.take(off, axis=1))
+            point, normal, geo, emission, albedo = (a.take(on, axis=1) for a in
+                                                    (point, normal, geo, emission, albedo))
+            idx = idx[on]
         if len(on):
-            irr = self.irradiance(point[on], normal[on], geo[on], self.occluder)
-            out[idx[on]] = emission[on] + albedo[on] * (self.world.ambient + irr) / np.pi
-        return out
+            irr = sum(self._light_cols(light, point, normal, geo, self.occluder)[0]
+                      for light in self.lights)
+            _put(out, idx, emission + albedo * (self.world.ambient + irr) / np.pi)
+        return out.T
 
     def irradiance(self, points, normals, offset_normals, occluder=None) -> np.ndarray:
         """(N, 3) direct irradiance sum_l E_l from the scene's lights at ``points`` with unit
@@ -157,38 +187,63 @@ class Environment:
     def light_irradiance(self, light: Light, points, normals, offset_normals, occluder=None):
         """(E (N, 3), l (N, 3)): the irradiance from one light (cosine and shadow included)
         and the unit directions towards it."""
+        cols = (np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(-1, 3).T)
+                for a in (points, normals, offset_normals))
+        e, l = self._light_cols(light, *cols, occluder)
+        return e.T, l.T
+
+    def _light_cols(self, light: Light, p, nrm, off_nrm, occluder):
+        """``light_irradiance`` on columns: points, normals, offset normals (3, k) each."""
         if light.kind == "point":
-            to = np.asarray(light.position, dtype=np.float64) - points
-            r2 = np.einsum("ij,ij->i", to, to)
+            pos = np.asarray(light.position, dtype=np.float64)
+            to = pos[:, None] - p
+            r2 = to[0] * to[0] + to[1] * to[1] + to[2] * to[2]
             r = np.sqrt(r2)
-            l = to / np.where(r > 0, r, 1.0)[:, None]
+            l = to / np.where(r > 0, r, 1.0)
             # a light nearer than the shadow offset is on the surface: 1/r^2 stops growing
             # there (finite, so colour components of 0 give 0, not NaN)
             scale = light.power / (4.0 * np.pi * np.maximum(r2, self.offset ** 2))
         else:
             d = np.asarray(light.direction, dtype=np.float64)
-            l = np.broadcast_to(-d / np.linalg.norm(d), points.shape)
-            r = np.full(len(points), np.inf)
-            scale = np.full(len(points), float(light.strength))
-        cos = np.maximum(np.einsum("ij,ij->i", normals, l), 0.0)
+            l = np.broadcast_to((-d / np.linalg.norm(d))[:, None], p.shape)
+            scale = float(light.strength)
+        cos = np.maximum(nrm[0] * l[0] + nrm[1] * l[1] + nrm[2] * l[2], 0.0)
         lit = cos > 0
         if light.shadows and lit.any():
             idx = np.flatnonzero(lit)
-            o = points[idx] + self.offset * offset_normals[idx]
-            dist = (np.linalg.norm(np.asarray(light.position, dtype=np.float64) - o, axis=1)
-                    if light.kind == "point" else r[idx])
-            blocked = self._occluded(o, l[idx], dist, occluder)
+            l_on = l
+            if len(idx) < len(lit):
+                p, off_nrm, l_on = (a.take(idx, axis=1) for a in (p, off_nrm, l))
+            o = p + self.offset * off_nrm
+            if light.kind == "point":
+                to_o = pos[:, None] - o
+                dist = np.sqrt(to_o[0] * to_o[0] + to_o[1] * to_o[1] + to_o[2] * to_o[2])
+            else:
+                dist = np.full(len(idx), np.inf)
+            blocked = self._occluded(o.T, l_on.T, dist, occluder,
+                                     pos if light.kind == "point" else None)
             lit[idx[blocked]] = False
-        e = np.where(lit, scale * cos, 0.0)[:, None] * np.asarray(light.color, dtype=np.float64)
+        e = np.where(lit, scale * cos, 0.0) * np.asarray(light.color, dtype=np.float64)[:, None]
         return e, l
 
-    def _occluded(self, origins, dirs, dist, occluder):
+    def _occluded(self, origins, dirs, dist, occluder, apex):
+        """(n,) bool: is each shadow segment blocked; ``apex``: the point light they end at."""
         self.stats["shadow_rays"] += len(origins)
-        blocked = self.meshes.any_hit(origins, dirs, 0.0, dist)
-        if occluder is not None and not blocked.all():
-            free = np.flatnonzero(~blocked)
-            blocked[free] = occluder.any_hit(origins[free], dirs[free], 0.0, dist[free])
+        pad = APEX_PAD * self.offset
+        blocked = self.meshes.any_hit(origins, dirs, 0.0, dist, apex, pad)
+        if occluder is None or blocked.all():
+            return blocked
+        if not blocked.any():
+            return occluder.any_hit(origins, dirs, 0.0, dist, apex, pad)
+        free = np.flatnonzero(~blocked)
+        blocked[free] = occluder.any_hit(origins[free], dirs[free], 0.0, dist[free], apex, pad)
         return blocked
+
+
+def _put(out, idx, values):
+    """out[:, idx] = values, row by row (a fancy assignment along the second axis is slower)."""
+    for row, v in zip(out, values):
+        row[idx] = v
 
 
 def local_illumination(points, normals, view_dirs, material: ObjectMaterial,

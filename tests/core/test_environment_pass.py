@@ -1,10 +1,12 @@
-"""The environment pass: every camera ray's environment hit found once and reused, large
-parallelograms tested as planes (same hits as the BVH of their triangles), shadow rays skip
-planes whose sides hold both ends, constant colours not evaluated per ray."""
+"""The environment pass: every camera ray's environment hit found once and reused, a room's
+parallelograms tested as quads against ray packets (same hits as the BVH of their triangles),
+shadow rays skip quads whose planes have both ends on one side, constant colours not
+evaluated per ray."""
 
 import numpy as np
 
 import riray.trace.meshes as meshes_mod
+import riray.trace.planar as planar_mod
 import riray.trace.shading as shading_mod
 from riray.render.frame import ExactAnswerer, shade_share
 from riray.scene.camera import Shot, camera_rays
@@ -22,20 +24,21 @@ def random_rays(n, seed, lo=(-3.9, -3.9, 0.05), hi=(3.9, 3.9, 3.9)):
     return o, d / np.linalg.norm(d, axis=1)[:, None]
 
 
-def test_room_walls_are_planes_with_the_same_hits(monkeypatch):
+def test_room_quads_have_the_same_hits(monkeypatch):
     meshes = room()[0]
     fast = MeshSet(meshes)
-    assert fast.num_planes == 6 and len(fast._rest) == fast.num_triangles - 12
+    assert fast.num_quads == 36 and len(fast._rest) == 0
+    monkeypatch.setattr(meshes_mod, "SMALL_SET", 0)
     monkeypatch.setattr(meshes_mod, "MAX_PLANES", 0)
     slow = MeshSet(meshes)
-    assert slow.num_planes == 0
+    assert slow.num_quads == 0
     o, d = random_rays(4000, 1)
     tmin = np.where(np.arange(4000) % 3 == 0, 0.5, 0.0)
     tmax = np.where(np.arange(4000) % 4 == 0, 2.0, np.inf)
     a, b = fast.closest(o, d, tmin, tmax), slow.closest(o, d, tmin, tmax)
     np.testing.assert_array_equal(a.tri, b.tri)
-    for f in ("t", "b1", "b2"):
-        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    for f in ("t", "b1", "b2"):     # quads: plane and parallelogram coordinates, same to rounding
+        np.testing.assert_allclose(getattr(a, f), getattr(b, f), rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(fast.any_hit(o, d, tmin, tmax), slow.any_hit(o, d, tmin, tmax))
 
 
@@ -50,20 +53,22 @@ def test_only_parallelograms_pair():
     np.testing.assert_allclose(np.abs(np.cross(eu, ev))[:, 2], [1.0])
 
 
-def test_shadow_rays_between_points_inside_skip_the_planes(monkeypatch):
+def test_shadow_rays_between_points_inside_skip_the_quads(monkeypatch):
     ms = MeshSet(room(table=False)[0])
-    assert ms.num_planes == 6
-    calls = []
-    real = MeshSet._plane_test
-    monkeypatch.setattr(MeshSet, "_plane_test", lambda self, *a: calls.append(1) or real(self, *a))
+    assert ms.num_quads == 6
+    pairs = []
+    real = planar_mod.Packets.dots
+    monkeypatch.setattr(planar_mod.Packets, "dots",
+                        lambda self, dirs, axis, k, *a: pairs.append(len(k)) or
+                        real(self, dirs, axis, k, *a))
     o, _ = random_rays(500, 2)
     light = np.array([1.6, -1.2, 3.6])
     to = light - o
     dist = np.linalg.norm(to, axis=1)
-    assert not ms.any_hit(o, to / dist[:, None], 0.0, dist).any()
-    assert calls == []                       # both ends inside: no plane tested in full
+    assert not ms.any_hit(o, to / dist[:, None], 0.0, dist, light, 1e-6).any()
+    assert sum(pairs) == 0                   # both ends inside: no quad tested in full
     assert ms.any_hit(o, -to / dist[:, None], 0.0, np.full(len(o), 1e3)).all()
-    assert calls
+    assert sum(pairs) > 0
 
 
 def test_camera_rays_meet_the_environment_once():
