@@ -15,6 +15,9 @@ from .slots import add_trees, add_viewpoints
 from .state import BakeConfig, BakeState
 from .tracing import Tracer
 
+# Rays per query call when the bake answers the region's camera rays: bounds the query's
+# per-ray arrays (hundreds of bytes a ray) for animations of many cameras.
+QUERY_CHUNK = 1 << 20
 # The angle threshold (degrees) of the refinement rule (refine_rule): the paper's value.
 REFINE_ANGLE_DEG = 20.0
 # The baked-error tolerance (degrees) under which finest_rule counts traced rays: the
@@ -87,7 +90,7 @@ class Baker:
             self.measure(region, tree)
             leaf = self._traced_cells(tree, o, d, tmax)
         else:
-            _, ans, why, _ = TreeQuery(tree, self.cfg.st, refine_rule())(o, d, tmax)
+            ans, why = _answers(TreeQuery(tree, self.cfg.st, refine_rule()), o, d, tmax)
             bad = (why == WHY_USABLE) | (why == WHY_THRESHOLD)
             t_in, face, x, y, _ = entry_points(tree, o[bad], d[bad])
             leaf, _, _ = vpf.locate(face, x, y)
@@ -118,7 +121,7 @@ class Baker:
         viewpoint errors just measured)."""
         from ..locate import locate
         from ..query import TRACED, TreeQuery
-        _, ans, _, _ = TreeQuery(tree, self.cfg.st, finest_rule())(o, d, tmax)
+        ans, _ = _answers(TreeQuery(tree, self.cfg.st, finest_rule()), o, d, tmax)
         tr = ans == TRACED
         loc, _ = locate(tree, o[tr], d[tr], tmax[tr])
         count = np.bincount(loc.vnode, minlength=len(self.state.vpf.child))
@@ -159,3 +162,11 @@ class Baker:
                             "direction_trees": int(np.sum(s.dirf.root >= 0)),
                             "samples": int(len(s.samples)),
                             "extra_cells": int(len(s.ex["ex_node"]))})
+
+
+def _answers(query, o, d, tmax):
+    """(answer, why) codes of rays (o, d, tmax) from ``query`` (a TreeQuery), QUERY_CHUNK rays
+    a call."""
+    parts = [query(o[a:a + QUERY_CHUNK], d[a:a + QUERY_CHUNK], tmax[a:a + QUERY_CHUNK])[1:3]
+             for a in range(0, max(len(o), 1), QUERY_CHUNK)]
+    return tuple(np.concatenate([p[k] for p in parts]) for k in (0, 1))
