@@ -36,8 +36,9 @@ Rules (policy "ri"; paper sections 4.1-4.3, 5.1-5.4), per ray:
 2d. Path identity (``path_identity``), after 2b: a ray of a class whose usable corners (its
     class, not null) hold more than one ray-tree hash, or whose leaves or cell carry the
     PATH_CHANGE flag, is TRACED (path_change).
-2e. One path per blend (``max_error_deg`` set, ``path_identity`` off), after 2b: a ray of a
-    class whose usable corners hold more than one ray-tree hash is TRACED (path_change).
+2e. One path per blend (``max_error_deg`` set, ``one_path`` on, ``path_identity`` off), after
+    2b: a ray of a class whose usable corners hold more than one ray-tree hash is TRACED
+    (path_change).
 3.  Usable: the query's class and not null.
 4.  Per-sample thresholds (``threshold_on="samples"``; angle = chord of the output directions,
     distance = of the output origins, |a - b|^2 > limit^2): pairs among the usable samples of
@@ -408,6 +409,16 @@ def one_hash(data, cell, pc):
                 if data.cls[s] == pc and not data.null[s]}) <= 1
 
 
+def paths_allowed(data, cell, pc, opt):
+    """Rules 2d and 2e as the options ask: path identity, else one path per blend under a
+    tolerance (``one_path``), else nothing to check."""
+    if getattr(opt, "path_identity", False):
+        return same_path(data, cell, pc)
+    if getattr(opt, "max_error_deg", None) is not None and getattr(opt, "one_path", True):
+        return one_hash(data, cell, pc)
+    return True
+
+
 def same_path(data, cell, pc):
     """Rule 2d: rule 2e holds, and no leaf nor the cell carries the PATH_CHANGE flag."""
     t = data.tree
@@ -461,7 +472,7 @@ def answer_ri(data, cell, pc, o, d, tmax, opt, first=None):
         if not (getattr(opt, "mirror_rays", "interpolate") == "newton"
                 and data.mirror and calm(data, cell, first is not None)):
             return traced
-        if not (same_path if getattr(opt, "path_identity", False) else one_hash)(data, cell, pc):
+        if not paths_allowed(data, cell, pc, opt):
             return Answer(TRACED, WHY_PATH, info={"pc": pc, "path": True})
         if not newton_eligible(data, cell, pc, opt):
             return traced
@@ -475,10 +486,7 @@ def answer_ri(data, cell, pc, o, d, tmax, opt, first=None):
 
 def answer_untested(data, cell, pc, o, d, tmax, opt, first=None):
     """Rules 2d-11 (after the tolerance)."""
-    if getattr(opt, "path_identity", False):
-        if not same_path(data, cell, pc):
-            return Answer(TRACED, WHY_PATH, info={"pc": pc, "path": True})
-    elif getattr(opt, "max_error_deg", None) is not None and not one_hash(data, cell, pc):
+    if not paths_allowed(data, cell, pc, opt):
         return Answer(TRACED, WHY_PATH, info={"pc": pc, "path": True})
     samples = [[data.vals[s] for s in row] for row in cell.ids]
     usable = [[bool(data.cls[s] == pc and not data.null[s]) for s in row] for row in cell.ids]

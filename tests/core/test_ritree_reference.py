@@ -86,6 +86,7 @@ OPTIONS = {
     "intermediate": paper(angle_deg=20.0, threshold_on="intermediate"),
     "intermediate_dist": paper(angle_deg=None, distance=0.05, threshold_on="intermediate"),
     "tolerance": QueryOptions(angle_deg=None, max_error_deg=1.0),
+    "tolerance_mixed_paths": QueryOptions(angle_deg=None, max_error_deg=1.0, one_path=False),
     "tolerance_angle20": QueryOptions(angle_deg=20.0, max_error_deg=4.0),
     "path": paper(angle_deg=None, path_identity=True),
     "tolerance_path": QueryOptions(angle_deg=None, max_error_deg=2.0, path_identity=True),
@@ -115,7 +116,8 @@ CASES = {
                    params=BakeParams(viewpoint_depth=3, direction_depth=5, viewpoint_refine=0),
                    max_events=None, extra_cameras=(), clip=0.0,
                    options=("angle_off", "angle20", "unverified", "extrapolation", "raytree",
-                            "intermediate_dist", "tolerance", "tolerance_path", "mirror_normal",
+                            "intermediate_dist", "tolerance", "tolerance_mixed_paths",
+                            "tolerance_path", "mirror_normal",
                             "mirror_normal_angle20", "mirror_newton", "tolerance_mirror_newton")),
     # the glass vase with at most 3 events: rays through both walls are trapped (null)
     "vase_glass_trapped": dict(scene="vase_glass", camera="close",

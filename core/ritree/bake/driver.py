@@ -42,7 +42,8 @@ def finest_rule():
     return QueryOptions(policy="ri", extrapolation=None, angle_deg=None, distance=None,
                         null_interp=True, max_error_deg=FINEST_TOLERANCE_DEG,
                         fallback_angle_deg=REFINE_ANGLE_DEG, path_identity=False,
-                        mirror_rays="newton", many_classes="trace", solve_paths=False)
+                        one_path=False, mirror_rays="newton", many_classes="trace",
+                        solve_paths=False)
 
 
 class Baker:

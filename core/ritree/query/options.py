@@ -62,6 +62,10 @@ class QueryOptions:
                                        # path (query/paths.py), else traced
     path_identity: bool = False        # trace rays whose usable samples differ in ray-tree hash
                                        # or whose leaves / cell the bake saw change path
+    one_path: bool = True              # under a tolerance (max_error_deg), without
+                                       # path_identity: refuse a ray whose usable samples differ
+                                       # in ray-tree hash (a blend of two paths interpolates
+                                       # neither), to be solved along a path or traced
     mirror_rays: str = "newton"        # mirrors ("ri" policy), a ray whose usable samples all
                                        # reflect once: "reflect" leaves along the query
                                        # direction reflected about the interpolated normal,

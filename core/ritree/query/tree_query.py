@@ -105,7 +105,7 @@ class TreeQuery:
             within_tolerance(self, b)
         if self.opt.path_identity:
             same_path(self, b)
-        elif self.opt.max_error_deg is not None:
+        elif self.opt.max_error_deg is not None and self.opt.one_path:
             one_path(self, b)
         if len(b.go) == 0:
             return
