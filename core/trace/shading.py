@@ -175,15 +175,6 @@ class Environment:
             _put(out, idx, emission + albedo * (self.world.ambient + irr) / np.pi)
         return out.T
 
-    def irradiance(self, points, normals, offset_normals, occluder=None) -> np.ndarray:
-        """(N, 3) direct irradiance sum_l E_l from the scene's lights at ``points`` with unit
-        ``normals``; shadow rays start ``self.offset`` along ``offset_normals`` and test the
-        environment meshes and ``occluder``."""
-        out = np.zeros((len(points), 3))
-        for light in self.lights:
-            out += self.light_irradiance(light, points, normals, offset_normals, occluder)[0]
-        return out
-
     def light_irradiance(self, light: Light, points, normals, offset_normals, occluder=None):
         """(E (N, 3), l (N, 3)): the irradiance from one light (cosine and shadow included)
         and the unit directions towards it."""
