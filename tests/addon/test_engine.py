@@ -218,8 +218,10 @@ def test_still_through_baked_tree_matches_core(bl, tmp_path):
     obj = baked_scene(bl, tmp_path, "tree_still.blend")
     path = bl.cache.cache_path(obj)
     # a coarse tree on a strongly curved mirror: the 20 deg pairwise angle rule would trace
-    # nearly everything; the rules are render-time options (no re-bake)
+    # nearly everything; rays past the tolerance are traced rather than solved, so that the
+    # Traced pass has pixels to mark; the rules are render-time options (no re-bake)
     obj.riray.use_angle_threshold = False
+    obj.riray.use_solve_paths = False
     assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
     got = load_exr(bpy, tmp_path / "still.exr")
     last = bl.engine.LAST_RENDER

@@ -129,8 +129,9 @@ def test_defaults_are_cores(bl):
     assert set(want) - set(got) == {"viewpoint_tolerance_deg", "pad"}     # not in the add-on
     _same({k: got[k] for k in want if k in got}, {k: v for k, v in want.items() if k in got})
     # every QueryOptions field but these is a setting, so its default is checked here too
+    # (one_path: a rule of the tolerance that is always on in the add-on)
     assert set(asdict(query.QueryOptions())) - set(got["query"]) == \
-        {"threshold_on", "threshold_leaves", "fallback_angle_deg"}
+        {"threshold_on", "threshold_leaves", "fallback_angle_deg", "one_path"}
     _same(asdict(query.QueryOptions(**got["query"])), asdict(query.QueryOptions()))
     assert bl.properties.QUALITY == {k.upper(): v for k, v in params.QUALITY_PRESETS.items()}
     assert {k: got[k] for k in params.QUALITY_PRESETS["default"]} == \
