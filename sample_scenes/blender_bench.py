@@ -45,7 +45,9 @@ import numpy as np  # noqa: E402
 
 from riray.bench.compare import whitted_scene  # noqa: E402
 from riray.bench.exact_bench import machine  # noqa: E402
-from riray.bench.ritree_bench import BenchConfig, _json_safe, bake_view  # noqa: E402
+from riray.bench.ritree_config import BenchConfig  # noqa: E402
+from riray.bench.ritree_measure import bake_view  # noqa: E402
+from riray.bench.ritree_output import json_safe  # noqa: E402
 from riray.render.exact import render_exact  # noqa: E402
 from riray.imageio import write_png  # noqa: E402
 from riray.render.interpolated import psnr, render_tree  # noqa: E402
@@ -268,7 +270,7 @@ def main(argv=None) -> int:
                 "--spp", *map(str, args.spp), "--reference-spp", str(args.reference_spp),
                 "--workers", str(args.workers)]),
            "elapsed_s": time.perf_counter() - t0, "rows": rows}
-    (out / "blender.json").write_text(json.dumps(_json_safe(res), indent=1) + "\n")
+    (out / "blender.json").write_text(json.dumps(json_safe(res), indent=1) + "\n")
     with open(out / "blender.csv", "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(COLS)

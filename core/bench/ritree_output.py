@@ -95,15 +95,15 @@ def _write_csv(path, rows, cols):
             w.writerow(["" if r.get(c) is None else r.get(c) for c in cols])
 
 
-def _json_safe(x):
+def json_safe(x):
     if isinstance(x, float) and not math.isfinite(x):
         return None if math.isnan(x) else ("inf" if x > 0 else "-inf")
     if isinstance(x, dict):
-        return {k: _json_safe(v) for k, v in x.items()}
+        return {k: json_safe(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_json_safe(v) for v in x]
+        return [json_safe(v) for v in x]
     if isinstance(x, np.generic):
-        return _json_safe(x.item())
+        return json_safe(x.item())
     return x
 
 
@@ -120,7 +120,7 @@ def write_outputs(result, out: Path, plots=True) -> list:
         written.append(p)
     result["pareto"] = dominance(result["sweeps"])
     p = out / "results.json"
-    p.write_text(json.dumps(_json_safe(result), indent=1) + "\n")
+    p.write_text(json.dumps(json_safe(result), indent=1) + "\n")
     written.append(p)
     p = out / "tables.md"
     p.write_text(tables_markdown(result) + "\n")

@@ -194,3 +194,24 @@ def test_headless_bad_input(extension_zip, bowl_blend, tmp_path, args, message):
     assert "Traceback" not in res.stderr and "baking" not in res.stdout
     last = res.stderr.strip().splitlines()[-1]
     assert last.startswith("headless_render.py: error: ") and message in last, res.stderr
+
+
+@pytest.mark.parametrize("script", ["blender_bench.py", "animation_bench.py"])
+def test_bench_scripts_start(script, tmp_path):
+    """The Blender benchmark scripts import what they use (every import runs before --help)
+    and answer --help."""
+    res = subprocess.run([sys.executable, str(ROOT / "sample_scenes" / script), "--help"],
+                         capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "BLENDER_USER_RESOURCES": str(tmp_path / "bl_user")})
+    assert res.returncode == 0 and "usage:" in res.stdout, res.stdout + res.stderr
+
+
+def test_animation_bench_refuses_one_frame(tmp_path):
+    """animation_bench.py --frames 1: one line and exit status 2, before any build or bake."""
+    res = subprocess.run([sys.executable, str(ROOT / "sample_scenes" / "animation_bench.py"),
+                          "--frames", "1", "--work", str(tmp_path / "work")],
+                         capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "BLENDER_USER_RESOURCES": str(tmp_path / "bl_user")})
+    assert res.returncode == 2, res.stdout + res.stderr
+    assert res.stderr.strip().splitlines()[-1] == "animation_bench: --frames must be at least 2"
+    assert not (tmp_path / "work").exists()
