@@ -17,6 +17,7 @@ reused). Prints a table and writes the rows as JSON.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import math
 import os
@@ -30,13 +31,15 @@ sys.path.insert(0, str(HERE))
 import headless_render  # noqa: E402  (sets a private BLENDER_USER_RESOURCES before bpy)
 
 import bpy  # noqa: E402
+import build_blend  # noqa: E402
+from mathutils import Vector  # noqa: E402
 
 def animate_camera(scene, obj, frames: int, arc_deg: float) -> None:
     """The scene's close camera circles ``obj``'s centre by ``arc_deg`` over ``frames``
     frames."""
     cam = bpy.data.objects["close"]
     scene.camera = cam
-    centre = obj.matrix_world @ (sum((v for v in _corners(obj)), start=_zero()) / 8.0)
+    centre = obj.matrix_world @ (sum((Vector(c) for c in obj.bound_box), Vector()) / 8.0)
     start = cam.location.copy()
     rel = start - centre
     radius, height = math.hypot(rel.x, rel.y), rel.z
@@ -53,16 +56,6 @@ def animate_camera(scene, obj, frames: int, arc_deg: float) -> None:
                         centre.z + height)
         cam.keyframe_insert("location", frame=f)
     scene.frame_set(1)
-
-
-def _corners(obj):
-    from mathutils import Vector
-    return [Vector(c) for c in obj.bound_box]
-
-
-def _zero():
-    from mathutils import Vector
-    return Vector((0.0, 0.0, 0.0))
 
 
 def render_animation(engine_mod) -> list[dict]:
@@ -101,13 +94,10 @@ def summary(rows: list[dict]) -> dict:
             "frames_reusing_all": sum(1 for r in later if len(r["reused"]) >= 3)}
 
 
-def run(args) -> dict:
-    w, h = (int(x) for x in args.size.lower().split("x"))
+def run(args, w: int, h: int) -> dict:
     addon = headless_render.ensure_addon("")
-    cache = __import__(f"{addon.__name__}.cache", fromlist=["cache"])
-    engine_mod = __import__(f"{addon.__name__}.engine", fromlist=["engine"])
-    sys.path.insert(0, str(HERE))
-    import build_blend
+    cache = importlib.import_module(f"{addon.__name__}.cache")
+    engine_mod = importlib.import_module(f"{addon.__name__}.engine")
     obj = build_blend.build_scene(args.scene)
     scene = bpy.context.scene
     animate_camera(scene, obj, args.frames, args.arc)
@@ -170,7 +160,12 @@ def main(argv=None) -> int:
     if args.frames < 2:
         print("animation_bench: --frames must be at least 2", file=sys.stderr)
         return 2
-    res = run(args)
+    size = args.size.lower().split("x")
+    if len(size) != 2 or not all(s.isdigit() and int(s) > 0 for s in size):
+        print(f"animation_bench: --size {args.size}: expected WIDTHxHEIGHT, e.g. 960x540",
+              file=sys.stderr)
+        return 2
+    res = run(args, int(size[0]), int(size[1]))
     print(f"{res['scene']}, {res['frames']} frames over {res['arc_deg']:g} deg at "
           f"{res['size'][0]} x {res['size'][1]}, quality {res['quality']}, "
           f"Blender {res['blender']}; bake {res['bake']['wall_s']:.1f} s wall, cache "

@@ -157,14 +157,14 @@ def _level_rects(rec, level, D, Dmax, G, margin, cells):
     keys = np.concatenate(keys)
     reps = len(keys) // max(len(u), 1)
     uu, vv = np.tile(u, reps), np.tile(v, reps)
-    return _merge_rects([keys], [np.stack([uu, uu, vv, vv], axis=1)] if len(keys) else [])
+    return _merge_rects([keys], [np.stack([uu, uu, vv, vv], axis=1)])
 
 
 def _merge_rects(keys, rects):
     """Unique keys of the concatenated ``keys`` with the union of their ``rects`` rows
     (u0, u1, v0, v1): the least u0 and v0, the greatest u1 and v1."""
     k = np.concatenate(keys)
-    r = np.concatenate(rects) if rects else np.zeros((0, 4))
+    r = np.concatenate(rects)
     uk, inv = np.unique(k, return_inverse=True)
     inv = inv.ravel()
     out = np.empty((len(uk), 4))

@@ -215,3 +215,14 @@ def test_animation_bench_refuses_one_frame(tmp_path):
     assert res.returncode == 2, res.stdout + res.stderr
     assert res.stderr.strip().splitlines()[-1] == "animation_bench: --frames must be at least 2"
     assert not (tmp_path / "work").exists()
+
+
+def test_animation_bench_refuses_a_bad_size(tmp_path):
+    """animation_bench.py --size 960by540: one line naming it and exit status 2."""
+    res = subprocess.run([sys.executable, str(ROOT / "sample_scenes" / "animation_bench.py"),
+                          "--size", "960by540", "--work", str(tmp_path / "work")],
+                         capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "BLENDER_USER_RESOURCES": str(tmp_path / "bl_user")})
+    assert res.returncode == 2, res.stdout + res.stderr
+    assert "--size 960by540: expected WIDTHxHEIGHT" in res.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "work").exists()

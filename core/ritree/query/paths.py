@@ -2,12 +2,12 @@
 
 A ray that the baked-error tolerance refuses (or path identity, or too few usable samples)
 usually takes the path of one of its samples: the same patches, in the same order, with the
-same reflections, refractions and total internal reflections. The tree stores each hit sample's path seeds (tree layout 6: the
-first hit's normalized patch parameters and those of the next RECORDED_EVENTS events), so the
-ray is solved event by event along the path of its nearest sample of its class (then of the
-nearest with another path, CANDIDATE_PATHS in all): Newton on the patch the path visits from
-that sample's parameters there (``trace.polish``), each event's kind decided by the law at the
-solved point. The answer is kept only where
+same reflections, refractions and total internal reflections. The tree stores each hit
+sample's path seeds (tree layout 6: the first hit's normalized patch parameters and those of
+the next RECORDED_EVENTS events), so the ray is solved event by event along the path of its
+nearest sample of its class (then of the nearest with another path, CANDIDATE_PATHS in all):
+Newton on the patch the path visits from that sample's parameters there (``trace.polish``),
+each event's kind decided by the law at the solved point. The answer is kept only where
 
 - every event converged near its seed (``CHAIN_MAX_MOVE_REL``, ``CHAIN_MOVE_PER_OFFSET``,
   ``CHAIN_MAX_TURN_DEG``),
