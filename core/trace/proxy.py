@@ -89,18 +89,18 @@ class Proxy:
         """(N,) bool: whether the segments from surface points ``start`` (N, 3) along unit
         ``d`` for ``length`` (N,; inf: a ray) meet the proxy away from their ends; ``n_start``
         and ``n_end`` (N, 3) are the unit surface normals at the ends (n_end unused for rays)."""
-        t0 = self._end_stretch(d, n_start)
+        t0 = self.end_stretch(d, n_start)
         t1 = np.asarray(length, np.float64).copy()
         fin = np.isfinite(t1)
         if n_end is not None and fin.any():
-            t1[fin] -= self._end_stretch(d[fin], n_end[fin])
+            t1[fin] -= self.end_stretch(d[fin], n_end[fin])
         out = np.zeros(len(start), bool)
         live = np.flatnonzero(t1 > t0)
         if len(live):
             out[live] = self.mesh.any_hit(start[live], d[live], t0[live], t1[live])
         return out
 
-    def _end_stretch(self, d, n) -> np.ndarray:
+    def end_stretch(self, d, n) -> np.ndarray:
         """How far from a surface point a segment leaving it along ``d`` (normal ``n``) may
         still be inside the shells: twice the deviation over the sine of its angle."""
         sine = np.abs(np.einsum("ij,ij->i", d, n))

@@ -269,3 +269,52 @@ def test_seeds_blend_the_same_path_samples_except_across_a_seam():
     assert np.allclose(seeds[0, 0], [(0.5 * 0.40 + 0.3 * 0.44) / 0.8, 0.5], atol=1e-6)
     assert np.allclose(seeds[0, 1], [(0.5 * 0.20 + 0.3 * 0.24) / 0.8, 0.1], atol=1e-6)
     assert np.allclose(seeds[0, 2], [0.02, 0.3], atol=1e-6)       # the seam: sample 0's own
+
+
+def _refused_with_known_hits(st, q, o, d):
+    """A query batch of rays ``o``, ``d`` all refused as unsampled, their exact first hits
+    found (as the query's full search leaves them)."""
+    from riray.ritree.query.batch import Batch
+    b = Batch.of(o, d, np.full(len(o), np.inf))
+    b.trace(np.arange(len(o)), paths.WHY_UNSAMPLED)
+    b.known.add(np.arange(len(o)), st.tracer.intersect(o, d))
+    return b
+
+
+def test_mirror_rays_whose_reflection_leaves_are_answered_by_it(blocked):
+    """A mirror ray still refused with a known first hit is answered by its one reflection
+    where that leaves the object, exactly as traced; a ray reflected into the wall or the
+    strip is left to the tracer."""
+    st, tree = blocked
+    q = TreeQuery(tree, st, REFUSE_ALL)
+    o, d = down_rays(st, 2000, 8, (0.1, 0.9), 1.5)
+    ex = st.object_function(o, d)
+    b = _refused_with_known_hits(st, q, o, d)
+    paths.one_reflection(q, b)
+    solved = np.flatnonzero(b.ans == SOLVED)
+    assert len(solved) > 0.3 * ex.hit.sum()
+    assert_exact(b.res, ex, solved)
+    assert np.all(ex.events[solved] == 1)
+    many = np.flatnonzero(ex.hit & (ex.events > 1))
+    assert len(many) > 50 and not np.any(b.ans[many] == SOLVED)
+
+
+def test_a_reflection_meeting_a_crease_next_to_its_start_is_traced(corner):
+    """The proxy does not look at the stretch next to a segment's start; a ray reflected off
+    the floor right beside the wall meets the wall inside that stretch: the exact tracer looks
+    there, and the ray (two reflections) is not answered by one."""
+    st, tree = corner
+    q = TreeQuery(tree, st, REFUSE_ALL)
+    sine = 0.25                                         # the reflected ray's angle with the floor
+    out = P(np.sqrt(1 - sine ** 2), 0.0, sine)
+    t0 = q.proxy.end_stretch(out[None], P(0, 0, 1)[None])[0]
+    gap = 0.5 * t0 * out[0]                             # the wall at half the untested stretch
+    assert 0.5 * t0 > 1e-7 * st.tracer.diag             # a new event, not the start point
+    hit = P(1.0 - gap, 0.0, 0.0)
+    d = unit(P(out[0], 0.0, -sine))[None]
+    o = hit[None] - 0.5 * d
+    ex = st.object_function(o, d)
+    assert ex.events[0] == 2
+    b = _refused_with_known_hits(st, q, o, d)
+    paths.one_reflection(q, b)
+    assert b.ans[0] == TRACED

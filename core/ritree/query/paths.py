@@ -21,7 +21,10 @@ each event's kind decided by the law at the solved point. The answer is kept onl
   near the tangent plane); a trapped sample's path is the ray's only with all max_events
   events solved, and the ray is then trapped too.
 
-The others are traced.
+On a mirror, a ray still refused whose exact first hit the query found (the full search, e.g.
+a hit on a patch none of its samples hit) is then answered by its one reflection there where
+that reflection leaves the object (the proxy, and the exact tracer over the stretch next to the
+hit that the proxy does not look at). The others are traced.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ from ...trace.objectfn import (REFLECT, REFRACT, SECONDARY_T_MIN_REL, TREE_HASH_
 from ...trace.patches import PatchHit
 from ...trace.polish import Seeds, polish_hits
 from ...trace.proxy import GRAZING_SINE
-from ..answers import COL, SOLVED, TRACED, WHY_PATH, WHY_TOLERANCE, WHY_USABLE
+from ..answers import COL, SOLVED, TRACED, WHY_PATH, WHY_TOLERANCE, WHY_UNSAMPLED, WHY_USABLE
 from .sets import N_CORNERS, corner_weights
 
 # Each event's Newton root is kept only within this distance of its seed's surface point
@@ -64,7 +67,17 @@ SOLVABLE = (WHY_TOLERANCE, WHY_PATH, WHY_USABLE)
 def solve_paths(q, b) -> None:
     """Answer (SOLVED) the rays refused for SOLVABLE reasons whose exact path is one of their
     samples' of their class: tried in turn along the paths of the heaviest such sample (bilinear
-    weights at both levels) and of the heaviest one with another path, up to CANDIDATE_PATHS."""
+    weights at both levels) and of the heaviest one with another path, up to CANDIDATE_PATHS;
+    on a mirror, then the rays still refused whose exact first hit the query found, along
+    their own one-reflection path (``one_reflection``)."""
+    _sample_paths(q, b)
+    if q.material.kind == "mirror":
+        with b.clock("paths"):
+            one_reflection(q, b)
+
+
+def _sample_paths(q, b) -> None:
+    """solve_paths along the samples' paths."""
     rays = np.flatnonzero((b.ans == TRACED) & np.isin(b.why, SOLVABLE))
     if len(rays) == 0 or b.loc is None or b.loc_pc is None:
         return
@@ -93,6 +106,40 @@ def solve_paths(q, b) -> None:
             tried[k] = q.table.tree[sid]
             w[q.table.tree[ids] == tried[:, None]] = -1.0
             w[b.ans[rays] != TRACED] = -1.0
+
+
+def one_reflection(q, b) -> None:
+    """Answer (SOLVED) the mirror rays still refused (SOLVABLE reasons, or a first hit on a
+    patch none of their samples hit: WHY_UNSAMPLED) whose exact first hit the query found (the
+    full search: the nearest) and whose reflection there leaves the object (``_hits_again``):
+    their path is that one reflection, whatever their samples' paths."""
+    rays = np.flatnonzero((b.ans == TRACED) & np.isin(b.why, SOLVABLE + (WHY_UNSAMPLED,)))
+    got = b.known.of(rays) if len(rays) else None
+    if got is None:
+        return
+    k, first = got
+    k, first = k[first.hit], first.take(np.flatnonzero(first.hit))
+    rays = rays[k]
+    d = b.d[rays]
+    nrm = np.where((np.einsum("ij,ij->i", first.normal, d) > 0)[:, None], -first.normal,
+                   first.normal)
+    out = reflect(d, nrm)
+    again = _hits_again(q, first.point, out, nrm)
+    # The proxy does not look at the stretch next to the surface point (proxy.end_stretch),
+    # where a patch meeting this one at a crease may be met: the exact tracer looks there (on a
+    # sample's path the samples vouch for it). Grazing rays were traced all the way already.
+    r = np.flatnonzero(~again & (np.abs(np.einsum("ij,ij->i", out, nrm)) >= GRAZING_SINE))
+    floor = np.full(len(r), SECONDARY_T_MIN_REL * q.st.tracer.diag)
+    again[r] = q.st.tracer.intersect(first.point[r], out[r], tmin=floor,
+                                     tmax=q.proxy.end_stretch(out[r], nrm[r])).hit
+    keep = np.flatnonzero(~again)
+    n = len(keep)
+    _answer(q, b, rays[keep], first.take(keep),
+            Chains(oo=first.point[keep], od=out[keep], null=np.zeros(n, bool),
+                   events=np.ones(n, np.int64),
+                   tree=tree_hash_step(np.full(n, TREE_HASH_SEED, np.uint64), first.patch[keep],
+                                       np.full(n, REFLECT)).astype(np.uint32),
+                   fresnel=np.zeros(n), refl_dir=np.zeros((n, 3))))
 
 
 def sample_weights(q, loc, pc):
