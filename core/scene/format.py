@@ -19,12 +19,16 @@ TEXTURE_KINDS = {  # kind -> fields it uses (besides "kind")
     "image": ("path", "scale", "coords"),
 }
 LIGHT_KINDS = {"point": ("color", "position", "power", "shadows"),
-               "sun": ("color", "direction", "strength", "shadows")}
-WORLD_KINDS = {"color": ("color", "strength", "ambient"),
-               "gradient": ("color", "zenith", "strength", "ambient"),
-               "image": ("path", "strength", "ambient"),
-               "nodes": ("graph", "strength", "ambient")}
+               "sun": ("color", "direction", "strength", "shadows"),
+               "area": ("color", "position", "direction", "axis", "size", "shape", "power",
+                        "shadows")}
+AREA_SHAPES = ("rectangle", "ellipse")
+WORLD_KINDS = {"color": ("color", "strength", "ambient", "sky"),
+               "gradient": ("color", "zenith", "strength", "ambient", "sky"),
+               "image": ("path", "strength", "ambient", "sky"),
+               "nodes": ("graph", "strength", "ambient", "sky")}
 MATERIAL_KINDS = ("diffuse", "emission", "nodes")
+GLOSSY_FIELDS = ("metallic", "roughness", "specular")     # not "emission" materials
 OBJECT_MATERIAL_KINDS = ("mirror", "glass", "dielectric")
 CAMERA_KINDS = ("perspective", "orthographic")
 SENSOR_FITS = ("AUTO", "HORIZONTAL", "VERTICAL")
@@ -81,7 +85,7 @@ def _light_dict(li: Light) -> dict:
     out = {"name": li.name, "kind": li.kind}
     for key in LIGHT_KINDS.get(li.kind, ()):
         val = getattr(li, key)
-        out[key] = bool(val) if key == "shadows" else (
+        out[key] = bool(val) if key == "shadows" else val if key == "shape" else (
             float(val) if key in ("power", "strength") else list(map(float, val)))
     return out
 
@@ -95,10 +99,14 @@ def _graph_dict(g, owner: str) -> dict:
 
 def _material_dict(m: Material) -> dict:
     if m.kind == "nodes":
-        return {"name": m.name, "kind": "nodes",
-                "graph": _graph_dict(m.graph, f"material {m.name!r}")}
-    return {"name": m.name, "kind": m.kind, "color": _texture_dict(m.color),
-            "strength": float(m.strength)}
+        out = {"name": m.name, "kind": "nodes",
+               "graph": _graph_dict(m.graph, f"material {m.name!r}")}
+    else:
+        out = {"name": m.name, "kind": m.kind, "color": _texture_dict(m.color),
+               "strength": float(m.strength)}
+    if m.kind != "emission":
+        out.update({key: float(getattr(m, key)) for key in GLOSSY_FIELDS})
+    return out
 
 
 def _world_dict(w: World) -> dict:
@@ -108,7 +116,8 @@ def _world_dict(w: World) -> dict:
     for key in WORLD_KINDS.get(w.kind, ()):
         val = getattr(w, key)
         out[key] = val if key == "path" else _graph_dict(val, "world") if key == "graph" else (
-            float(val) if key in ("strength", "ambient") else list(map(float, val)))
+            bool(val) if key == "sky" else float(val) if key in ("strength", "ambient")
+            else list(map(float, val)))
     return out
 
 

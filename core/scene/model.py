@@ -53,13 +53,19 @@ class Texture:
 class Material:
     """An environment material. kind: "diffuse" (Lambert, lit), "emission" (unlit colour) or
     "nodes" (a shader node graph, ``graph``: emission plus a lit diffuse albedo, evaluated by
-    trace/nodes.py; ``color`` and ``strength`` are not used)."""
+    trace/nodes.py; ``color`` and ``strength`` are not used). A "diffuse" material with
+    ``metallic`` m > 0 reflects: m of its colour is a metal of that tint and ``roughness``
+    (0..1, Blender's), the rest stays diffuse, under a dielectric layer of normal
+    reflectance ``specular`` when it is > 0 (trace/shading.py)."""
 
     name: str
     kind: str = "diffuse"
     color: Texture = field(default_factory=Texture)
     strength: float = 1.0
     graph: ShaderGraph | None = None
+    metallic: float = 0.0
+    roughness: float = 0.5
+    specular: float = 0.0                # normal reflectance of a dielectric specular layer
 
 
 @dataclass
@@ -122,7 +128,11 @@ class Mesh:
 @dataclass
 class Light:
     """kind "point": ``position``, radiant ``power`` in W (irradiance = power/(4 pi r^2)).
-    kind "sun": ``direction`` the light travels along (unit), ``strength`` in W/m^2."""
+    kind "sun": ``direction`` the light travels along (unit), ``strength`` in W/m^2.
+    kind "area": a one-sided Lambertian emitter centred at ``position``, facing ``direction``
+    (unit), its first side along ``axis`` (unit, perpendicular to it); ``size`` (metres along
+    axis, along direction x axis), ``shape`` "rectangle" or "ellipse"; radiant ``power`` in W
+    (radiance = power / (pi * area), Cycles' convention)."""
 
     name: str
     kind: str = "point"
@@ -132,6 +142,15 @@ class Light:
     direction: tuple[float, float, float] = (0.0, 0.0, -1.0)
     strength: float = 3.0
     shadows: bool = True
+    axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    size: tuple[float, float] = (1.0, 1.0)
+    shape: str = "rectangle"
+
+    @property
+    def area(self) -> float:
+        """Emitting area in m^2 (area lights)."""
+        a = float(self.size[0]) * float(self.size[1])
+        return a * np.pi / 4.0 if self.shape == "ellipse" else a
 
 
 @dataclass
@@ -139,7 +158,8 @@ class World:
     """What a ray that escapes everything sees, times ``strength``. kind: "color", "gradient"
     (``color`` at and below the horizon -> ``zenith``, t = clamp(direction z, 0, 1)), "image"
     (equirectangular, +X at the image centre, like Blender), "nodes" (the emission of the
-    shader node graph ``graph`` for the ray direction, trace/nodes.py)."""
+    shader node graph ``graph`` for the ray direction, trace/nodes.py). With ``sky`` set it
+    also lights diffuse surfaces, the occlusion of the scene sampled (trace/shading.py)."""
 
     kind: str = "color"
     color: RGB = (0.05, 0.05, 0.05)
@@ -149,6 +169,7 @@ class World:
     strength: float = 1.0
     ambient: float = 0.0                 # constant ambient term for diffuse environment shading
     graph: ShaderGraph | None = None
+    sky: bool = False                    # the world lights diffuse surfaces (occlusion sampled)
 
 
 @dataclass

@@ -10,9 +10,9 @@ import numpy as np
 from ..geometry.knots import MAX_DEGREE, GeometryError, check_surface
 from ..geometry.nurbs import NurbsSurface
 from ..imageio import MAX_IMAGE_SIDE
-from .format import (CAMERA_FIELDS, CAMERA_KINDS, FORMAT, LIGHT_KINDS, MATERIAL_KINDS,
-                     OBJECT_MATERIAL_KINDS, SENSOR_FITS, TEXTURE_KINDS, TOP_KEYS, VERSION,
-                     WORLD_KINDS)
+from .format import (AREA_SHAPES, CAMERA_FIELDS, CAMERA_KINDS, FORMAT, LIGHT_KINDS,
+                     MATERIAL_KINDS, GLOSSY_FIELDS, OBJECT_MATERIAL_KINDS, SENSOR_FITS,
+                     TEXTURE_KINDS, TOP_KEYS, VERSION, WORLD_KINDS)
 from .graph import GraphError, graph_from_dict
 from .images import SceneImages
 from .model import (Camera, Light, Material, Mesh, ObjectMaterial, Patch, RenderSettings, Scene,
@@ -28,6 +28,8 @@ RIGID_TOL = 1e-6       # max |R^T R - I| for a camera rotation (dimensionless)
 MAX_IOR = 100.0
 MAX_CLASS_ID = 2 ** 31 - 1     # class ids are Blender integer properties (32-bit)
 UNIT_TOL = 1e-9        # sun directions further than this from unit length are normalized on load
+PERP_TOL = 1e-5        # max |cos| between an area light's axis and direction (float32 matrices
+                       # give ~1e-7); the axis is then made exactly perpendicular
 
 
 def _texture(v, path: str, images: SceneImages) -> Texture:
@@ -79,17 +81,28 @@ def _graph(v, path: str, images: SceneImages, owner: str):
 
 def _material(v, path: str, images: SceneImages) -> Material:
     if isinstance(v, dict) and v.get("kind") == "nodes":
-        read_fields(v, path, ("name", "kind", "graph"), (), " for material kind 'nodes'")
+        read_fields(v, path, ("name", "kind", "graph"), GLOSSY_FIELDS,
+                    " for material kind 'nodes'")
         name = read_string(v["name"], at_key(path, "name"))
-        return Material(name=name, kind="nodes",
-                        graph=_graph(v["graph"], at_key(path, "graph"), images,
-                                     f"material {name!r}"))
-    read_fields(v, path, ("name",), ("kind", "color", "strength"))
+        m = Material(name=name, kind="nodes",
+                     graph=_graph(v["graph"], at_key(path, "graph"), images, f"material {name!r}"))
+        return _glossy(m, v, path)
+    read_fields(v, path, ("name",), ("kind", "color", "strength") + GLOSSY_FIELDS)
     m = Material(name=read_string(v["name"], at_key(path, "name")))
     m.kind = read_string(v.get("kind", m.kind), at_key(path, "kind"), MATERIAL_KINDS, "kind")
     if "color" in v:
         m.color = _texture(v["color"], at_key(path, "color"), images)
     m.strength = read_number(v.get("strength", m.strength), at_key(path, "strength"), ge=0)
+    for key in GLOSSY_FIELDS:
+        if key in v and m.kind == "emission":
+            fail(at_key(path, key), f"an 'emission' material has no {key}")
+    return _glossy(m, v, path)
+
+
+def _glossy(m: Material, v: dict, path: str) -> Material:
+    """The glossy layer's fields (numbers in [0, 1])."""
+    for key in GLOSSY_FIELDS:
+        setattr(m, key, read_number(v.get(key, getattr(m, key)), at_key(path, key), ge=0, le=1))
     return m
 
 
@@ -229,17 +242,40 @@ def _light(v, path: str) -> Light:
     li = Light(name=read_string(v["name"], at_key(path, "name")), kind=kind)
     li.color = read_rgb(v.get("color", li.color), at_key(path, "color"))
     li.shadows = read_boolean(v.get("shadows", li.shadows), at_key(path, "shadows"))
-    if kind == "point":
+    if kind in ("point", "area"):
         li.position = read_point3(v.get("position", li.position), at_key(path, "position"))
         li.power = read_number(v.get("power", li.power), at_key(path, "power"), ge=0)
-    else:
-        d = np.array(read_vec3(v.get("direction", li.direction), at_key(path, "direction")))
-        n = float(np.linalg.norm(d))
-        if not n > 0:
-            fail(at_key(path, "direction"), "must not be the zero vector")
-        li.direction = tuple(float(x) for x in (d / n if abs(n - 1) > UNIT_TOL else d))
+    if kind in ("sun", "area"):
+        li.direction = _unit(v.get("direction", li.direction), at_key(path, "direction"))
+    if kind == "sun":
         li.strength = read_number(v.get("strength", li.strength), at_key(path, "strength"), ge=0)
+    if kind == "area":
+        _area_light(li, v, path)
     return li
+
+
+def _unit(v, path: str) -> tuple[float, float, float]:
+    """A non-zero vector, normalized when it is not of unit length."""
+    d = np.array(read_vec3(v, path))
+    n = float(np.linalg.norm(d))
+    if not n > 0:
+        fail(path, "must not be the zero vector")
+    return tuple(float(x) for x in (d / n if abs(n - 1) > UNIT_TOL else d))
+
+
+def _area_light(li: Light, v, path: str) -> None:
+    """The axis (made exactly perpendicular to the direction), size and shape of an area light."""
+    d = np.array(li.direction)
+    a = np.array(_unit(v.get("axis", li.axis), at_key(path, "axis")))
+    cos = float(a @ d)
+    if abs(cos) > PERP_TOL:
+        fail(at_key(path, "axis"), f"must be perpendicular to direction (cosine {cos:.3g})")
+    a = a - cos * d
+    li.axis = tuple(float(x) for x in a / np.linalg.norm(a))
+    size = read_coords(v.get("size", list(li.size)), at_key(path, "size"), (2,))
+    check_positive(size, at_key(path, "size"), "a side")
+    li.size = (float(size[0]), float(size[1]))
+    li.shape = read_string(v.get("shape", li.shape), at_key(path, "shape"), AREA_SHAPES, "shape")
 
 
 def _world(v, path: str, images: SceneImages) -> World:
@@ -259,6 +295,7 @@ def _world(v, path: str, images: SceneImages) -> World:
         w.graph = _graph(v["graph"], at_key(path, "graph"), images, "the world")
     w.strength = read_number(v.get("strength", w.strength), at_key(path, "strength"), ge=0)
     w.ambient = read_number(v.get("ambient", w.ambient), at_key(path, "ambient"), ge=0)
+    w.sky = read_boolean(v.get("sky", w.sky), at_key(path, "sky"))
     return w
 
 

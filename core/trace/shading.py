@@ -2,16 +2,32 @@
 illumination.
 
 Environment materials: "emission" radiance = texture * strength (lights ignored); "diffuse"
-radiance = albedo / pi * (world.ambient + sum of light irradiances); "nodes" radiance = the
-graph's emission + its albedo / pi * (the same), both from trace/nodes.py; with
+radiance = albedo / pi * (world.ambient + E_sky + sum of light irradiances); "nodes" radiance =
+the graph's emission + its albedo / pi * (the same), both from trace/nodes.py; with
 point light  E = color * power / (4 pi r^2) * max(0, n.l)
 sun          E = color * strength * max(0, n.l)
-and n the shading normal turned towards the incoming ray. Shadow rays are cast only for lights
-with ``shadows`` set, only from points the light faces, against the environment meshes and the
-optional occluder (a tessellated proxy of the specular object); toward a point light they are
-tested as segments ending at it (MeshSet.any_hit's apex: packets bounded from the light, apex
-grids). Rays that hit nothing see eval_world(direction). Hit points are shaded as columns
-(3, k), one material group at a time; constant colours are not evaluated per point.
+area light   E = L * F * V: L = color * power / (pi * area) (Cycles' convention), F the
+             closed-form form factor of the light's polygon (an ellipse: a 32-gon of its area)
+             where the whole light is above the horizon, else estimated from the samples; V the
+             share of the samples' contribution cos cos' / r^2 unshadowed (16 stratified points
+             on the light, each a shadow ray): soft shadows, exact where nothing occludes
+sky          E_sky = pi * mean of the world's radiance along 16 stratified cosine-weighted
+             rays, 0 for those that meet the environment or the occluder (only when
+             world.sky is set: the world lights the scene)
+and n the shading normal turned towards the incoming ray. Sample sets are stratified grids
+shifted per point by a hash of its coordinates (trace/lights.py): deterministic, and noise
+rather than bands where they do not converge. A "diffuse" material with metallic m adds
+m * colour * (its reflection + the lights' highlight): a mirror ray into the environment for
+roughness <= 0.1 (it sees the area lights), else 9 stratified rays in a Blinn-Phong lobe of
+exponent 2 / roughness^4 - 2 plus that lobe's highlight from each light; reflected rays are
+shaded without further metal reflection. Rays that meet an area light's lit face before any
+surface add its radiance L. Shadow rays are cast only for lights with ``shadows`` set, only
+from points the light faces, against the environment meshes and the optional occluder (a
+tessellated proxy of the specular object); toward a point light they are tested as segments
+ending at it (MeshSet.any_hit's apex: packets bounded from the light, apex grids). Rays that
+hit nothing see eval_world(direction). Hit points are shaded as columns (3, k), one material
+group at a time; constant colours are not evaluated per point. None of the sampled terms
+costs anything in a scene without area lights, sky lighting or metals.
 """
 
 from __future__ import annotations
@@ -19,6 +35,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..scene.model import Light, ObjectMaterial, Scene
+from .lights import AreaLight, cosine_directions, lobe_directions, point_offsets
 from .meshes import MeshSet, RayHits
 from .nodes import ShadingPoints, evaluate
 from .textures import eval_texture, eval_world
@@ -34,6 +51,19 @@ SHADE_CHUNK = 8192      # rays shaded at once: bounds the per-chunk arrays (~L2 
 # renderer's factors (tint, at most the scene format's 1e12) for any valid scene; real scenes
 # are many orders below it (the sun's disc is ~2e7 W/m^2/sr).
 MAX_RADIANCE = 1e20
+SKY_SIDE = 4            # the sky term: SKY_SIDE^2 stratified cosine-weighted occlusion rays
+AREA_SIDE = 4           # an area light: AREA_SIDE^2 stratified shadow rays to points on it
+GLOSSY_SIDE = 3         # a rough metal: GLOSSY_SIDE^2 stratified reflection rays in its lobe
+ROUGH_SHARP = 0.1       # Blender roughness up to which a metal reflects as a mirror (its lobe,
+                        # exponent 2e4 at 0.1, is narrower than a pixel's footprint there)
+SALT_SKY, SALT_AREA, SALT_GLOSSY = 1, 2, 3      # independent sample offsets per term
+
+
+def roughness_shininess(roughness: float) -> float:
+    """The Blinn-Phong exponent of a microfacet lobe of Blender ``roughness`` (alpha =
+    roughness^2; the Beckmann-equivalent exponent 2 / alpha^2 - 2), at least 1."""
+    alpha = max(float(roughness), 1e-3) ** 2
+    return max(2.0 / (alpha * alpha) - 2.0, 1.0)
 
 
 class Environment:
@@ -70,9 +100,15 @@ class Environment:
         mesh_group = np.array([names.index(m.material) for m in scene.meshes], dtype=np.int64)
         self._tri_material = mesh_group[self.meshes.tri_mesh]
         for light in self.lights:
-            if light.kind not in ("point", "sun"):
-                raise ValueError(f"light {light.name!r}: kind must be 'point' or 'sun', "
-                                 f"got {light.kind!r}")
+            if light.kind not in ("point", "sun", "area"):
+                raise ValueError(f"light {light.name!r}: kind must be 'point', 'sun' or "
+                                 f"'area', got {light.kind!r}")
+        self._areas = {id(li): AreaLight(li) for li in self.lights if li.kind == "area"}
+        self._glossy = any(m.kind != "emission" and (m.metallic > 0 or m.specular > 0)
+                           for m in self._materials)
+        w = self.world
+        dark = w.strength == 0 or (w.kind == "color" and max(w.color) == 0)
+        self.sky = bool(w.sky) and not dark     # the sky term is on (a black world: off)
         pts = [self.meshes.vertices] + ([self.occluder.vertices] if self.occluder else [])
         pts = np.concatenate(pts)
         diag = float(np.linalg.norm(pts.max(0) - pts.min(0))) if len(pts) else 0.0
@@ -96,6 +132,11 @@ class Environment:
     def shade_rays(self, origins, dirs, tmin=None, hits: RayHits | None = None) -> np.ndarray:
         """(N, 3) radiance seen along rays (unit dirs) from t >= tmin (default 0). ``hits``:
         the rays' closest hits (``closest`` with the same tmin), found here when None."""
+        return self._shade_rays(origins, dirs, tmin, hits, bounce=0, see_lights=True)
+
+    def _shade_rays(self, origins, dirs, tmin, hits, bounce: int, see_lights: bool):
+        """``shade_rays`` at reflection depth ``bounce`` (metals reflect at depth 0 only);
+        ``see_lights``: add the radiance of the area lights the rays meet first."""
         origins = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
         dirs = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
         n = len(origins)
@@ -105,15 +146,28 @@ class Environment:
             sl = slice(c0, min(n, c0 + SHADE_CHUNK))
             h = (self.meshes.closest(origins[sl], dirs[sl], tmin[sl]) if hits is None
                  else hits.take(sl))
-            out[sl] = self._shade_chunk(dirs[sl], h)
+            out[sl] = self._shade_chunk(dirs[sl], h, bounce)
+            if see_lights and self._areas:
+                out[sl] += self._lights_seen(origins[sl], dirs[sl], tmin[sl], h.t)
         self.stats["env_rays"] += n
         return np.clip(out, -MAX_RADIANCE, MAX_RADIANCE)
 
-    def _shade_chunk(self, dirs, hits: RayHits):
+    def _lights_seen(self, origins, dirs, tmin, tmax) -> np.ndarray:
+        """(n, 3) radiance of the area lights' lit faces met by the rays within (tmin, tmax)
+        (lights are not opaque: what lies behind one is seen too, as in Cycles)."""
+        out = np.zeros((len(origins), 3))
+        o = origins + dirs * tmin[:, None]
+        for area in self._areas.values():
+            t = area.hit_distance(o, dirs) + tmin
+            out[t < tmax] += area.radiance
+        return out
+
+    def _shade_chunk(self, dirs, hits: RayHits, bounce: int = 0):
         """Radiance along rays ``dirs`` with closest hits ``hits``: the world where they miss;
-        emission + albedo / pi * (ambient + irradiance) where they hit, the irradiance (and
-        its shadow rays) found once for every point with an albedo, whatever its material.
-        Hit points are worked on as columns (3, k): per-point arithmetic runs over rows."""
+        emission + albedo / pi * (ambient + irradiance) + metal reflection where they hit,
+        the irradiance (and its shadow rays) found once for every point with an albedo or a
+        metal, whatever its material. Hit points are worked on as columns (3, k): per-point
+        arithmetic runs over rows."""
         n = len(dirs)
         out = np.empty((3, n))
         hit = hits.tri >= 0
@@ -136,6 +190,10 @@ class Environment:
         k = len(idx)
         emission, albedo = np.zeros((3, k)), np.zeros((3, k))
         lit = np.zeros(k, bool)
+        # glossy layers (depth 0 only): their material group, -1 elsewhere; the metal's tint
+        # and the dielectric coat's Fresnel weight
+        glossy = np.full(k, -1, np.int64) if self._glossy and bounce == 0 else None
+        tint, coat = (np.zeros((3, k)), np.zeros(k)) if glossy is not None else (None, None)
         group = self._tri_material[tri]
         for g in np.flatnonzero(np.bincount(group, minlength=len(self._materials))):
             sel = np.flatnonzero(group == g)
@@ -145,35 +203,118 @@ class Environment:
                 cl = evaluate(mat.graph, ShadingPoints(
                     position=at(point), normal=at(normal), true_normal=at(geo), incoming=-at(d),
                     uv=self.meshes.uv_at(tri[sel], b1[sel], b2[sel]).T, backfacing=back[sel]))
-                alb = np.broadcast_to(cl.albedo, (len(sel), 3)).T
+                col = np.broadcast_to(cl.albedo, (len(sel), 3)).T
                 _put(emission, sel, np.broadcast_to(cl.emission, (len(sel), 3)).T)
-                _put(albedo, sel, alb)
-                lit[sel] = np.any(alb != 0, axis=0)             # only these cast shadow rays
-                continue
-            tex = mat.color
-            if tex.kind == "constant":                  # not evaluated per point
-                col = np.broadcast_to(np.asarray(tex.color, dtype=np.float64)[:, None],
-                                      (3, len(sel)))
+                lit[sel] = np.any(col != 0, axis=0)             # only these cast shadow rays
             else:
-                col = eval_texture(tex, at(point), self.meshes.uv_at(tri[sel], b1[sel],
-                                                                     b2[sel]).T).T
-            if mat.kind == "emission":
-                _put(emission, sel, col * mat.strength)
-            else:
-                _put(albedo, sel, col)
+                tex = mat.color
+                if tex.kind == "constant":                  # not evaluated per point
+                    col = np.broadcast_to(np.asarray(tex.color, dtype=np.float64)[:, None],
+                                          (3, len(sel)))
+                else:
+                    col = eval_texture(tex, at(point), self.meshes.uv_at(tri[sel], b1[sel],
+                                                                         b2[sel]).T).T
+                if mat.kind == "emission":
+                    _put(emission, sel, col * mat.strength)
+                    continue
                 lit[sel] = True
+            if glossy is not None and (mat.metallic > 0 or mat.specular > 0):
+                glossy[sel] = g
+                lit[sel] = True
+                _put(tint, sel, col * mat.metallic)
+                fr = _fresnel(mat, -np.sum(d[:, sel] * normal[:, sel], axis=0))
+                coat[sel] = (1.0 - mat.metallic) * fr
+                col = col * ((1.0 - mat.metallic) * (1.0 - fr))
+            _put(albedo, sel, col)
         on = np.flatnonzero(lit)
         if len(on) < k:
             off = np.flatnonzero(~lit)
             _put(out, idx[off], emission.take(off, axis=1))
-            point, normal, geo, emission, albedo = (a.take(on, axis=1) for a in
-                                                    (point, normal, geo, emission, albedo))
+            point, normal, geo, emission, albedo, d = (
+                a.take(on, axis=1) for a in (point, normal, geo, emission, albedo, d))
             idx = idx[on]
-        if len(on):
-            irr = sum(self._light_cols(light, point, normal, geo, self.occluder)[0]
-                      for light in self.lights)
-            _put(out, idx, emission + albedo * (self.world.ambient + irr) / np.pi)
+            if glossy is not None:
+                glossy, tint, coat = glossy[on], tint.take(on, axis=1), coat[on]
+        if len(on) == 0:
+            return out.T
+        if glossy is not None and not np.any(glossy >= 0):
+            glossy = None
+        irr = np.zeros_like(albedo)
+        shine = np.zeros_like(albedo) if glossy is not None else None
+        for light in self.lights:
+            e, l = self._light_cols(light, point, normal, geo, self.occluder)
+            irr += e
+            if shine is not None:
+                shine += self._highlights(e, l, normal, d, glossy)
+        sky = self.sky_irradiance(point, normal, geo, self.occluder) if self.sky else 0.0
+        col = emission + albedo * (self.world.ambient + irr + sky) / np.pi
+        if glossy is not None:
+            col += (tint + coat) * shine + coat * (sky / np.pi) + tint * self._metal_reflection(
+                point, normal, geo, d, glossy)
+        _put(out, idx, col)
         return out.T
+
+    def _group_rows(self, glossy, metals_only=False):
+        """(material, row indices) of the glossy points, one material at a time."""
+        for g in np.unique(glossy[glossy >= 0]):
+            if not metals_only or self._materials[g].metallic > 0:
+                yield self._materials[g], np.flatnonzero(glossy == g)
+
+    def _highlights(self, e, l, normal, d, glossy):
+        """(3, k) the lights' Blinn-Phong highlight of rough glossy layers (per unit weight):
+        e * the lobe (s + 8) / (8 pi) (n.h)^s, s from the roughness; 0 for sharp layers and
+        others (a sharp metal's reflection rays see the area lights themselves)."""
+        out = np.zeros_like(e)
+        h = l - d
+        h = h / np.maximum(np.linalg.norm(h, axis=0), 1e-300)
+        nh = np.maximum(np.sum(normal * h, axis=0), 0.0)
+        for mat, rows in self._group_rows(glossy):
+            if mat.roughness <= ROUGH_SHARP:
+                continue
+            s = roughness_shininess(mat.roughness)
+            _put(out, rows, e[:, rows] * ((s + 8.0) / (8.0 * np.pi) * nh[rows] ** s))
+        return out
+
+    def _metal_reflection(self, point, normal, geo, d, glossy):
+        """(3, k) radiance the metal points reflect (per unit tint): one reflection bounce
+        into the environment, a mirror ray for sharp metals, GLOSSY_SIDE^2 stratified rays in
+        the roughness lobe otherwise (area lights are then left to ``_highlights``)."""
+        out = np.zeros_like(point)
+        r = d - 2.0 * np.sum(d * normal, axis=0) * normal
+        for mat, rows in self._group_rows(glossy, metals_only=True):
+            o = (point[:, rows] + self.offset * geo[:, rows])
+            if mat.roughness <= ROUGH_SHARP:
+                rad = self._shade_rays(o.T, r[:, rows].T, None, None, 1, True)
+                _put(out, rows, rad.T)
+                continue
+            dirs = lobe_directions(r[:, rows], roughness_shininess(mat.roughness), GLOSSY_SIDE,
+                                   point_offsets(point[:, rows], SALT_GLOSSY))
+            m = dirs.shape[2]
+            below = np.einsum("ik,ikm->km", geo[:, rows], dirs) <= 0
+            dirs = np.where(below[None], r[:, rows, None], dirs)       # the mirror ray instead
+            rad = self._shade_rays(np.repeat(o.T, m, axis=0), dirs.reshape(3, -1).T, None,
+                                   None, 1, False)
+            _put(out, rows, rad.reshape(len(rows), m, 3).mean(axis=1).T)
+        return out
+
+    def sky_irradiance(self, p, nrm, off_nrm, occluder):
+        """(3, k) irradiance from the world at points ``p`` with normals ``nrm`` (offset
+        normals ``off_nrm``), columns: pi * the mean world radiance along SKY_SIDE^2
+        stratified cosine-weighted rays, 0 for those that meet the environment or
+        ``occluder`` (or point below the surface)."""
+        dirs = cosine_directions(nrm, SKY_SIDE, point_offsets(p, SALT_SKY))
+        m = dirs.shape[2]
+        up = np.einsum("ik,ikm->km", off_nrm, dirs) > 0
+        flat = dirs.reshape(3, -1)
+        free = up.ravel().copy()
+        on = np.flatnonzero(free)
+        o = np.repeat(p + self.offset * off_nrm, m, axis=1)
+        free[on] = ~self._occluded(o[:, on].T, flat[:, on].T, np.full(len(on), np.inf),
+                                   occluder, None)
+        rad = np.zeros((len(free), 3))
+        seen = np.flatnonzero(free)
+        rad[seen] = eval_world(self.world, flat[:, seen].T)
+        return np.pi * rad.reshape(-1, m, 3).mean(axis=1).T
 
     def light_irradiance(self, light: Light, points, normals, offset_normals, occluder=None):
         """(E (N, 3), l (N, 3)): the irradiance from one light (cosine and shadow included)
@@ -185,6 +326,8 @@ class Environment:
 
     def _light_cols(self, light: Light, p, nrm, off_nrm, occluder):
         """``light_irradiance`` on columns: points, normals, offset normals (3, k) each."""
+        if light.kind == "area":
+            return self._area_cols(self._areas[id(light)], p, nrm, off_nrm, occluder)
         if light.kind == "point":
             pos = np.asarray(light.position, dtype=np.float64)
             to = pos[:, None] - p
@@ -217,6 +360,42 @@ class Environment:
         e = np.where(lit, scale * cos, 0.0) * np.asarray(light.color, dtype=np.float64)[:, None]
         return e, l
 
+    def _area_cols(self, area: AreaLight, p, nrm, off_nrm, occluder):
+        """(E, l) (3, k) each of an area light: radiance * the closed-form form factor where
+        the whole light is above a point's horizon (else the AREA_SIDE^2 stratified samples'
+        estimate), times the share of the samples' contribution cos cos' / r^2 that reaches
+        the point unshadowed; l towards the light's centre."""
+        k = p.shape[1]
+        to_c = area.centre[:, None] - p
+        l = to_c / np.maximum(np.linalg.norm(to_c, axis=0), 1e-300)
+        e = np.zeros((3, k))
+        front = np.flatnonzero(area.in_front(p))
+        if len(front) == 0:
+            return e, l
+        p, nrm, off_nrm = (a.take(front, axis=1) for a in (p, nrm, off_nrm))
+        q = area.sample_points(AREA_SIDE, point_offsets(p, SALT_AREA))     # (3, f, m)
+        w = q - p[:, :, None]
+        r2 = np.maximum(np.einsum("ikm,ikm->km", w, w), self.offset ** 2)
+        r = np.sqrt(r2)
+        cos_p = np.maximum(np.einsum("ik,ikm->km", nrm, w), 0.0) / r
+        cos_l = np.maximum(-np.einsum("i,ikm->km", area.normal, w), 0.0) / r
+        f = cos_p * cos_l / r2
+        total = f.sum(axis=1)
+        seen = f.copy()
+        if area.light.shadows:
+            on = np.flatnonzero(f.ravel() > 0)
+            o = np.repeat(p + self.offset * off_nrm, f.shape[1], axis=1)[:, on]
+            to = q.reshape(3, -1)[:, on] - o
+            dist = np.linalg.norm(to, axis=0)
+            blocked = self._occluded(o.T, (to / np.maximum(dist, 1e-300)).T, dist, occluder,
+                                     None)
+            seen.ravel()[on[blocked]] = 0.0
+        ff, whole = area.form_factor(p, nrm)
+        ff = np.where(whole, ff, total * area.area / f.shape[1])
+        share = seen.sum(axis=1) / np.where(total > 0, total, 1.0)
+        _put(e, front, area.radiance[:, None] * (ff * share))
+        return e, l
+
     def _occluded(self, origins, dirs, dist, occluder, apex):
         """(n,) bool: is each shadow segment blocked; ``apex``: the point light they end at."""
         self.stats["shadow_rays"] += len(origins)
@@ -231,6 +410,15 @@ class Environment:
         return blocked
 
 
+def _fresnel(mat, cos) -> np.ndarray:
+    """(k,) reflectance of a dielectric layer of normal reflectance ``mat.specular`` seen at
+    cosines ``cos``: Schlick's with the grazing limit lowered by the roughness (a rough
+    layer reflects less at grazing angles)."""
+    f0 = float(mat.specular)
+    edge = max(1.0 - float(mat.roughness), f0)
+    return f0 + (edge - f0) * (1.0 - np.clip(cos, 0.0, 1.0)) ** 5
+
+
 def _put(out, idx, values):
     """out[:, idx] = values, row by row (a fancy assignment along the second axis is slower)."""
     for row, v in zip(out, values):
@@ -242,10 +430,11 @@ def local_illumination(points, normals, view_dirs, material: ObjectMaterial,
     """(N, 3) local shading of the specular object at ``points`` with unit ``normals``, seen
     along ``view_dirs`` (unit, viewer -> point; normals are flipped to face the viewer):
 
-        diffuse * base_color / pi * (ambient + sum_l E_l)
-      + specular * sum_l color_l * scale_l * cos_l * (s + 8) / (8 pi) * max(0, n.h)^s
+        diffuse * base_color / pi * (ambient + E_sky + sum_l E_l)
+      + specular * sum_l E_l * (s + 8) / (8 pi) * max(0, n.h)^s
 
-    (energy-normalised Blinn-Phong, s = shininess, h the half vector). Shadow rays test the
+    (energy-normalised Blinn-Phong, s = shininess, h the half vector towards the light or an
+    area light's centre; E_sky when the world lights the scene). Shadow rays test the
     environment meshes only: the object casts no shadow on itself (its tessellated proxy,
     ``env.occluder``, would shadow the exact surface it approximates)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -257,6 +446,9 @@ def local_illumination(points, normals, view_dirs, material: ObjectMaterial,
     n = normals * np.where(np.einsum("ij,ij->i", normals, view_dirs) > 0, -1.0, 1.0)[:, None]
     base = material.diffuse * np.asarray(material.base_color, dtype=np.float64) / np.pi
     out += base * env.world.ambient
+    if material.diffuse and env.sky:
+        cols = [np.ascontiguousarray(a.T) for a in (points, n)]
+        out += base * env.sky_irradiance(cols[0], cols[1], cols[1], None).T
     s = float(material.shininess)
     for light in env.lights:
         e, l = env.light_irradiance(light, points, n, n)
