@@ -157,6 +157,17 @@ class RITree:
                               r[..., 2].max(axis=1), r[..., 3].min(axis=1)], axis=-1)
         return out
 
+    @cached_property
+    def class_paths(self) -> np.ndarray:
+        """(S,) uint64: each sample's path as the sequence of the classes (patch groups) its
+        first hit and recorded events meet, hashed (``group_sequence_key``). Paths that differ
+        only in which patch of one smooth group they meet (a reflection just either side of a
+        seam inside the teapot's body) share it; the ray-tree hash (``table.tree``) tells them
+        apart. Event kinds are not in it: on a mirror every event reflects."""
+        tab = self.table
+        pats = np.concatenate([tab.patch[:, None], tab.ev_patch], axis=1).astype(np.int64)
+        return group_sequence_key(np.where(pats >= 0, self.class_of[np.maximum(pats, 0)], -1))
+
     def sample_class(self, ids: np.ndarray) -> np.ndarray:
         """Class of sample ids (-1: misses the object)."""
         p = self.samples.patch[ids]
@@ -429,3 +440,18 @@ def load(path, scene=None) -> RITree:
         raise TreeCacheError(f"{path}: the RI-Tree's patch classes are not its object's; "
                              "re-bake the tree")
     return tree
+
+
+# splitmix64's multiplier and shifts: every bit of a class id reaches every bit of the key.
+_MIX = np.uint64(0xBF58476D1CE4E5B9)
+
+
+def group_sequence_key(groups: np.ndarray) -> np.ndarray:
+    """(S,) uint64 keys of (S, K) sequences of class ids (-1: no event): equal sequences get
+    equal keys, different ones different keys but with probability about K * 2^-64."""
+    key = np.zeros(len(groups), np.uint64)
+    with np.errstate(over="ignore"):
+        for col in groups.T:
+            key = (key ^ (col + 2).astype(np.uint64)) * _MIX
+            key ^= key >> np.uint64(31)
+    return key

@@ -37,8 +37,9 @@ Rules (policy "ri"; paper sections 4.1-4.3, 5.1-5.4), per ray:
     class, not null) hold more than one ray-tree hash, or whose leaves or cell carry the
     PATH_CHANGE flag, is TRACED (path_change).
 2e. One path per blend (``max_error_deg`` set, ``one_path`` on, ``path_identity`` off), after
-    2b: a ray of a class whose usable corners hold more than one ray-tree hash is TRACED
-    (path_change).
+    2b: a ray of a class whose usable corners hold more than one path is TRACED (path_change);
+    on a mirror a path is the sequence of classes of the patches it meets, else the ray-tree
+    hash.
 3.  Usable: the query's class and not null.
 4.  Per-sample thresholds (``threshold_on="samples"``; angle = chord of the output directions,
     distance = of the output origins, |a - b|^2 > limit^2): pairs among the usable samples of
@@ -143,9 +144,16 @@ class TreeData:
         self.hash = np.asarray(s.tree).astype(np.int64)
         class_of = np.asarray(tree.class_of).astype(np.int64)
         self.cls = np.where(self.patch >= 0, class_of[np.maximum(self.patch, 0)], -1)
+        self.class_of = class_of
+        self.ev_patch = np.asarray(s.ev_patch).astype(np.int64)
         self.extra = {int(node): e for e, node in enumerate(np.asarray(tree.ex_node))}
         self.dir_depth = int(tree.params.direction_depth)
         self.diag = float(tree.diag)
+
+    def class_path(self, s):
+        """The classes of sample ``s``'s first-hit patch and recorded events' patches."""
+        return (int(self.cls[s]),) + tuple(int(self.class_of[p]) for p in self.ev_patch[s]
+                                           if p >= 0)
 
     def cube_scale(self, leaf, tree_id, lx, ly):
         """|(1, u, v)| at the cell-local point (lx, ly) of direction leaf ``leaf`` of direction
@@ -404,8 +412,18 @@ def within_tolerance(data, cell, tol):
 
 
 def one_hash(data, cell, pc):
-    """Rule 2e: the 16 samples of class ``pc`` that are not null share one ray-tree hash."""
+    """Rule 2d's path test: the 16 samples of class ``pc`` that are not null share one
+    ray-tree hash."""
     return len({int(data.hash[s]) for row in cell.ids for s in row
+                if data.cls[s] == pc and not data.null[s]}) <= 1
+
+
+def one_path(data, cell, pc):
+    """Rule 2e: the 16 samples of class ``pc`` that are not null share one path: on a mirror
+    the classes of the patches they meet, in order; else their ray-tree hash."""
+    if not data.mirror:
+        return one_hash(data, cell, pc)
+    return len({data.class_path(s) for row in cell.ids for s in row
                 if data.cls[s] == pc and not data.null[s]}) <= 1
 
 
@@ -415,12 +433,12 @@ def paths_allowed(data, cell, pc, opt):
     if getattr(opt, "path_identity", False):
         return same_path(data, cell, pc)
     if getattr(opt, "max_error_deg", None) is not None and getattr(opt, "one_path", True):
-        return one_hash(data, cell, pc)
+        return one_path(data, cell, pc)
     return True
 
 
 def same_path(data, cell, pc):
-    """Rule 2d: rule 2e holds, and no leaf nor the cell carries the PATH_CHANGE flag."""
+    """Rule 2d: one ray-tree hash, and no leaf nor the cell carries the PATH_CHANGE flag."""
     t = data.tree
     return one_hash(data, cell, pc) \
         and not any(int(t.dir_flags[lf]) & PATH_CHANGE for lf in cell.leaves) \

@@ -1518,3 +1518,19 @@ def test_file_sample_codes_are_checked(bad):
         a["geom"] = np.array([0, bad], np.uint8)
     with pytest.raises(ValueError, match=match):
         PackedSamples.from_stored(a, packed.lo, packed.hi)
+
+
+def test_group_sequence_keys_tell_sequences_apart():
+    """Equal sequences of classes share a key; one class changed anywhere, or one event more
+    or fewer (a trailing -1), gives another; none of 20,000 random sequences collide."""
+    from riray.ritree.tree import group_sequence_key
+    rng = np.random.default_rng(3)
+    seqs = rng.integers(-1, 6, (20000, 8))
+    uniq = np.unique(seqs, axis=0)
+    keys = group_sequence_key(uniq)
+    assert len(np.unique(keys)) == len(uniq)
+    a = np.array([[0, 2, 2, -1, -1, -1, -1, -1]])
+    assert group_sequence_key(np.repeat(a, 3, axis=0)).tolist() == [group_sequence_key(a)[0]] * 3
+    for other in ([0, 2, 3, -1, -1, -1, -1, -1], [0, 2, 2, 2, -1, -1, -1, -1],
+                  [2, 0, 2, -1, -1, -1, -1, -1]):
+        assert group_sequence_key(np.array([other]))[0] != group_sequence_key(a)[0]

@@ -65,26 +65,31 @@ def within_tolerance(q, b) -> None:
     b.narrow(ok)
 
 
-def _one_hash(q, b):
+def _one_hash(q, b, groups=False):
     """(unit_of, first, same): the open rays' (set, class) units and whether each unit's
-    usable samples (its set's corners of its class, not null) share one ray-tree hash."""
+    usable samples (its set's corners of its class, not null) share one ray-tree hash; with
+    ``groups``, one sequence of patch groups (``RITree.class_paths``) instead."""
     tab = q.table
     unit_of, first = group_rows(np.stack([b.set_of, b.pc], axis=1))
     ids = b.sets.ids[b.set_of[first]]
     use = (tab.cls[ids] == b.pc[first][:, None]) & ~tab.null[ids]
-    h = tab.tree[ids].astype(np.int64)
+    h = (q.tree.class_paths[ids] >> np.uint64(1)).astype(np.int64) if groups \
+        else tab.tree[ids].astype(np.int64)
     top = np.where(use, h, -1).max(axis=1)
     same = top <= np.where(use, h, np.iinfo(np.int64).max).min(axis=1)
     return unit_of, first, same
 
 
 def one_path(q, b) -> None:
-    """Tolerance mode: keep the open rays whose usable samples share one ray-tree hash
-    (decided once per (set, class) unit). A blend of samples that take different paths (a
-    total internal reflection more or less, trapped against leaving, another surface) is an
-    interpolant of neither, however small the errors the bake's test rays met nearby: those
-    rays are refused (WHY_PATH), then solved along a sample's path or traced."""
-    unit_of, _, same = _one_hash(q, b)
+    """Tolerance mode: keep the open rays whose usable samples share one path (decided once
+    per (set, class) unit). A blend of samples that take different paths (a total internal
+    reflection more or less, trapped against leaving, another surface) is an interpolant of
+    neither, however small the errors the bake's test rays met nearby: those rays are refused
+    (WHY_PATH), then solved along a sample's path or traced. On a mirror a path is the
+    sequence of patch groups it reflects off (a seam between two patches of one smooth group
+    is no path boundary: the bake measured blends across it); else its ray-tree hash (the
+    event kinds are in it)."""
+    unit_of, _, same = _one_hash(q, b, groups=q.material.kind == "mirror")
     ok = same[unit_of]
     b.trace(b.loc.ray[b.go[~ok]], WHY_PATH)
     b.narrow(ok)
