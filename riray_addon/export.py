@@ -452,6 +452,8 @@ def export_light(obj, report: Report, matrix=None, name: str | None = None) -> L
         d = d / np.linalg.norm(d)
         return Light(name=name, kind="sun", color=color, strength=energy,
                      direction=tuple(float(x) for x in d), shadows=shadows)
+    if li.type == "AREA":
+        return _area_light(li, m, name, color, energy, shadows, report)
     if li.type != "POINT":
         report.warning(f"light {name}: {li.type.lower()} lights are rendered as point lights "
                        "of the same power")
@@ -460,6 +462,31 @@ def export_light(obj, report: Report, matrix=None, name: str | None = None) -> L
                        "shadows from the centre)")
     return Light(name=name, kind="point", color=color, power=energy,
                  position=tuple(float(x) for x in m[:3, 3]), shadows=shadows)
+
+
+def _area_light(li, m, name, color, energy, shadows, report: Report) -> Light:
+    """An area light as Cycles sees it: the object's X and Y columns (scale included) times
+    Size / Size Y span it, it faces along -Z, one-sided; its power in W."""
+    x, y, z = m[:3, 0], m[:3, 1], m[:3, 2]
+    d = -z / np.linalg.norm(z)
+    axis = x - (x @ d) * d
+    axis /= np.linalg.norm(axis)
+    square = li.shape in ("SQUARE", "DISK")
+    size = (float(li.size) * float(np.linalg.norm(x)),
+            float(li.size if square else li.size_y) * float(np.linalg.norm(y)))
+    spread = float(getattr(li, "spread", np.pi))
+    if spread < np.pi - 1e-6:
+        report.warning(f"light {name}: spread {np.degrees(spread):.0f} deg ignored (emits "
+                       "over the whole hemisphere)")
+    if not min(size) > 0:
+        report.warning(f"light {name}: an area light of zero size is rendered as a point light")
+        return Light(name=name, kind="point", color=color, power=energy,
+                     position=tuple(float(v) for v in m[:3, 3]), shadows=shadows)
+    return Light(name=name, kind="area", color=color, power=energy,
+                 position=tuple(float(v) for v in m[:3, 3]), direction=tuple(float(v) for v in d),
+                 axis=tuple(float(v) for v in axis), size=size,
+                 shape="ellipse" if li.shape in ("DISK", "ELLIPSE") else "rectangle",
+                 shadows=shadows)
 
 
 def export_camera(obj, scene, report: Report | None = None) -> Camera:

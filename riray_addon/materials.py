@@ -9,10 +9,12 @@ Specular object (``object_material``), from the shader at the active Material Ou
                    otherwise              -> "mirror" coat over a diffuse base: diffuse =
                                              1 - F0(ior), base colour = Base Color
 Roughness, textured inputs, mixes and other shaders are reported with what was used instead.
-Highlights (specular / shininess) come from material.riray.
+Highlights (specular / shininess) follow the shader's roughness (none for a sharp surface: it
+reflects the area lights themselves), or material.riray's when its Custom Highlight is on.
 
 Environment (``environment_material``): the fixed patterns core has texture kinds for, when
-they describe the tree exactly: Principled / Diffuse BSDF -> "diffuse" with the base colour;
+they describe the tree exactly: Principled / Diffuse BSDF -> "diffuse" with the base colour
+(a Principled's metallic and roughness too);
 Emission (or a Principled with emission) -> "emission"; colour sources: constant; Image Texture
 (UV, optional uniform Mapping scale); Checker Texture (colours swapped to core's parity
 convention; a Mapping with one zero axis scale gives stripes); a linear gradient = Color Ramp
@@ -24,7 +26,7 @@ the socket's own value, reported.
 World (``export_world``): likewise Background colour (constant), a Color Ramp on Separate
 XYZ.Z of the Generated/Normal/Object coordinate (core's horizon -> zenith gradient), or an
 equirectangular Environment Texture, else the world's node graph; strength; ambient from
-world.riray.ambient.
+world.riray.ambient; the world lights the scene (sky), as in Cycles.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.scene.model import Material, ObjectMaterial, Texture, World
+from ..core.trace.shading import ROUGH_SHARP, roughness_shininess
 from . import compat
 from .node_helpers import image_pixels, output_node, source
 from .nodegraph import SurfaceContext, surface_graph, world_graph
@@ -320,6 +323,25 @@ def _roughness(node, ctx: _Ctx) -> None:
                  "sharp reflection/refraction")
 
 
+def _highlight(mat, node) -> dict:
+    """The specular object's highlight (ObjectMaterial specular, shininess): the material's
+    RI-Tree Highlight and Shininess when *Custom Highlight* is on; else from the shader's
+    Roughness: none up to ROUGH_SHARP (a sharp surface's highlights are the lights it
+    reflects: its reflected rays see the area lights), above it the Blinn-Phong lobe of that
+    roughness with the surface's reflectance (1 for metals and Glossy, F0(IOR) otherwise)."""
+    if mat.riray.custom_highlight:
+        return dict(specular=float(mat.riray.specular), shininess=float(mat.riray.shininess))
+    rough = _input(node, "Roughness") if node is not None else None
+    r = float(rough.default_value) if rough is not None else 0.0
+    if r <= ROUGH_SHARP:
+        return dict(specular=0.0, shininess=1.0)
+    metal = node.type in ("BSDF_GLOSSY", "BSDF_ANISOTROPIC") or (
+        node.type == "BSDF_PRINCIPLED" and _value(node, "Metallic") >= SNAP)
+    ior = _value(node, "IOR", default=1.5)
+    f0 = 1.0 if metal else ((ior - 1.0) / (ior + 1.0)) ** 2
+    return dict(specular=float(f0), shininess=roughness_shininess(r))
+
+
 def object_material(mat, report, owner: str = "") -> ObjectMaterial:
     """The specular object's ObjectMaterial from a Blender material (None: a mirror)."""
     name = f"{owner}: material {mat.name!r}" if mat is not None else owner
@@ -327,8 +349,8 @@ def object_material(mat, report, owner: str = "") -> ObjectMaterial:
     if mat is None:
         report.warning(f"{owner}: no material; rendered as a mirror")
         return ObjectMaterial(kind="mirror", tint=(1.0, 1.0, 1.0), specular=0.25, shininess=96.0)
-    hl = dict(specular=float(mat.riray.specular), shininess=float(mat.riray.shininess))
     node = _surface_shader(compat.shader_tree(mat), ctx)
+    hl = _highlight(mat, node)
     if node is None:
         ctx.warn("no shader connected to the Material Output; rendered as a mirror tinted with "
                  "the viewport colour")
@@ -397,7 +419,28 @@ def _environment_material(mat, report, obj, has_uvs, surface, camera):
         for level, msg in probe.items:
             report.add(level, msg)
         return legacy, False
-    return Material(name=mat.name, kind="nodes", graph=graph), dependent
+    return Material(name=mat.name, kind="nodes", graph=graph,
+                    **_graph_glossy(mat, report)), dependent
+
+
+def _graph_glossy(mat, report) -> dict:
+    """The glossy layer (metallic, roughness, specular) of a node-graph material whose output
+    is a Principled BSDF with constant inputs; a metallic Principled elsewhere in the tree is
+    reported (shaded as diffuse)."""
+    tree = compat.shader_tree(mat)
+    ctx = _Ctx(report, f"material {mat.name!r}")
+    root = _surface_shader(tree, _Ctx(Report(), ""))
+    if root is not None and root.type == "BSDF_PRINCIPLED":
+        return dict(metallic=min(max(_const_value(_input(root, "Metallic"), ctx, "metallic"),
+                                     0.0), 1.0),
+                    roughness=min(max(_const_value(_input(root, "Roughness"), ctx,
+                                                   "roughness"), 0.0), 1.0),
+                    specular=_specular_layer(root, ctx))
+    for node in tree.nodes:
+        if node.type == "BSDF_PRINCIPLED" and _value(node, "Metallic") > 0:
+            ctx.warn(f"node {node.name!r}: metallic is shaded as diffuse (only a Principled BSDF "
+                     "at the Material Output reflects)")
+    return {}
 
 
 class EnvironmentMaterials:
@@ -459,13 +502,16 @@ def _fixed_environment_material(mat, report, obj, has_uvs: bool) -> Material:
                 ec.is_linked or max(_color_value(ec)) > 0):
             return Material(name=mat.name, kind="emission", color=color_texture(ec, ctx),
                             strength=float(es.default_value))
-        m = _input(node, "Metallic")
-        tr = _input(node, "Transmission Weight")
-        if (m is not None and float(m.default_value) > 0) or (
-                tr is not None and float(tr.default_value) > 0):
-            ctx.warn("metallic/transmissive environment surfaces are shaded as diffuse")
+        tr = _input(node, "Transmission Weight", "Transmission")
+        if tr is not None and (tr.is_linked or float(tr.default_value) > 0):
+            ctx.warn("transmissive environment surfaces are shaded as diffuse")
         return Material(name=mat.name, kind="diffuse",
-                        color=color_texture(_input(node, "Base Color"), ctx))
+                        color=color_texture(_input(node, "Base Color"), ctx),
+                        metallic=min(max(_const_value(_input(node, "Metallic"), ctx,
+                                                      "metallic"), 0.0), 1.0),
+                        roughness=min(max(_const_value(_input(node, "Roughness"), ctx,
+                                                       "roughness"), 0.0), 1.0),
+                        specular=_specular_layer(node, ctx))
     if t == "BSDF_DIFFUSE":
         return Material(name=mat.name, kind="diffuse", color=color_texture(_input(node, "Color"), ctx))
     col = _input(node, "Color")
@@ -476,6 +522,15 @@ def _fixed_environment_material(mat, report, obj, has_uvs: bool) -> Material:
     return Material(name=mat.name, kind="diffuse", color=tex)
 
 
+def _specular_layer(node, ctx: _Ctx) -> float:
+    """A Principled BSDF's dielectric layer as its normal reflectance: F0(IOR) * 2 * Specular
+    IOR Level (Blender's scale: 0.5 leaves F0 as the IOR gives it), within [0, 1]."""
+    ior = _const_value(_input(node, "IOR"), ctx, "IOR")
+    level = _input(node, "Specular IOR Level")
+    scale = 2.0 * _const_value(level, ctx, "specular IOR level") if level is not None else 1.0
+    return min(max(((ior - 1.0) / (ior + 1.0)) ** 2 * scale, 0.0), 1.0)
+
+
 def export_world(world, report, camera=None) -> World:
     """The core World: colour, horizon->zenith gradient or equirectangular image when one
     describes the world's tree exactly, else its node graph (``camera``: the scene camera's
@@ -484,15 +539,16 @@ def export_world(world, report, camera=None) -> World:
         report.info("the scene has no world; the background is black")
         return World(kind="color", color=(0.0, 0.0, 0.0))
     probe = Report()
-    fixed = _fixed_world(world, probe)
-    if not probe:
-        return fixed
-    graph = world_graph(compat.shader_tree(world), report, f"world {world.name!r}", camera)
-    if graph is None:
-        for level, msg in probe.items:
-            report.add(level, msg)
-        return fixed
-    return World(kind="nodes", graph=graph, ambient=float(world.riray.ambient))
+    out = _fixed_world(world, probe)
+    if probe:
+        graph = world_graph(compat.shader_tree(world), report, f"world {world.name!r}", camera)
+        if graph is None:
+            for level, msg in probe.items:
+                report.add(level, msg)
+        else:
+            out = World(kind="nodes", graph=graph, ambient=float(world.riray.ambient))
+    out.sky = True              # as in Cycles, the world lights the scene
+    return out
 
 
 def _fixed_world(world, report) -> World:

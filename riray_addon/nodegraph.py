@@ -288,7 +288,8 @@ def _diffuse(b, node):
 def _principled(b, node):
     for name in ("Metallic", "Transmission Weight"):
         s = b.input(node, name)
-        if s is not None and (s.is_linked or float(s.default_value) > 0):
+        # a constant metallic is the material's glossy layer (riray_addon/materials.py)
+        if s is not None and (s.is_linked or (name != "Metallic" and float(s.default_value) > 0)):
             b.warn(f"node {node.name!r}: {name.lower()} is shaded as diffuse (only the specular "
                    "object reflects)")
     return "principled", {}, {"base_color": "Base Color", "emission_color": "Emission Color",

@@ -283,6 +283,11 @@ class RIRAY_PG_material(bpy.types.PropertyGroup):
     join_class: BoolProperty(name="Join into one class", default=False,
                              description="All splines / faces of the specular object using this "
                                          "material form one equivalence class")
+    custom_highlight: BoolProperty(name="Custom Highlight", default=False,
+                                   description="Use the Highlight and Shininess below for the "
+                                               "specular object's highlight instead of the "
+                                               "shader's Roughness (which gives none for a "
+                                               "sharp surface: it reflects the lights)")
     specular: FloatProperty(name="Highlight", default=0.25, min=0.0, max=10.0,
                             description="Phong highlight weight of the specular object")
     shininess: FloatProperty(name="Shininess", default=96.0, min=1.0, max=10000.0,

@@ -283,8 +283,11 @@ class RIRAY_PT_material(bpy.types.Panel):
         m = context.material.riray
         self.layout.use_property_split = True
         self.layout.prop(m, "join_class")
-        self.layout.prop(m, "specular")
-        self.layout.prop(m, "shininess")
+        self.layout.prop(m, "custom_highlight")
+        col = self.layout.column()
+        col.active = m.custom_highlight
+        col.prop(m, "specular")
+        col.prop(m, "shininess")
 
 
 class _EnginePanel:

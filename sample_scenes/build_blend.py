@@ -215,7 +215,8 @@ def object_material(om) -> "bpy.types.Material":
     nt.links.new(node.outputs[0], out.inputs["Surface"])
     if om.diffuse:
         print(f"warning: object material diffuse={om.diffuse} has no node equivalent here")
-    set_riray(m, specular=float(om.specular), shininess=float(om.shininess))
+    set_riray(m, custom_highlight=True, specular=float(om.specular),
+              shininess=float(om.shininess))
     m.diffuse_color = (*om.tint, 1.0)
     return m
 

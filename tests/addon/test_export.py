@@ -498,3 +498,47 @@ def test_what_changes_the_image_is_a_warning(bl):
         assert tint[0] > tint[2]                         # 3000 K is warm
     else:
         assert light.power == pytest.approx(100.0)
+
+
+def test_area_lights_world_light_and_glossy_layers(bl):
+    """An area light is exported as an area (Cycles' frame: the object's X / Y columns times
+    Size / Size Y, facing -Z), the world lights the scene, a Principled's metallic, roughness
+    and specular layer reach the environment material, and the specular object's highlight
+    follows its roughness unless Custom Highlight is on."""
+    bpy = bl.bpy
+    obj = _add(bpy, "sphere")
+    bpy.ops.mesh.primitive_plane_add(size=4, location=(0, 0, -1.5))
+    plane = bpy.context.active_object
+    plane.data.materials.append(_principled(bl, "metal", **{
+        "Metallic": 0.75, "Roughness": 0.3, "IOR": 1.5, "Base Color": (0.9, 0.7, 0.4, 1)}))
+    bpy.ops.object.light_add(type="AREA", location=(1, 2, 3), rotation=(math.radians(90), 0, 0))
+    lamp = bpy.context.active_object
+    lamp.scale = (2.0, 1.0, 1.0)
+    lamp.data.energy, lamp.data.shape = 120.0, "RECTANGLE"
+    lamp.data.size, lamp.data.size_y = 0.5, 0.25
+    bpy.ops.object.light_add(type="AREA", location=(0, 0, 4))
+    bpy.context.active_object.data.shape = "DISK"
+    bpy.context.scene.world = bl.compat.new_world("w")
+    bpy.context.view_layer.update()
+    rep = bl.report.Report()
+    s = bl.export.export_scene(bpy.context.evaluated_depsgraph_get(), obj, rep)
+    rect, disk = sorted((li for li in s.lights), key=lambda li: li.position[2])
+    assert (rect.kind, rect.shape, rect.power) == ("area", "rectangle", 120.0)
+    assert np.allclose(rect.position, (1, 2, 3)) and np.allclose(rect.size, (1.0, 0.25))
+    assert np.allclose(rect.direction, (0, 1, 0), atol=1e-6)       # -Z turned 90 deg about X
+    assert np.allclose(rect.axis, (1, 0, 0), atol=1e-6)
+    assert (disk.kind, disk.shape) == ("area", "ellipse")
+    assert not any("area lights" in m for m in rep.messages())
+    assert s.world.sky is True
+    m = s.materials["metal"]
+    assert (m.metallic, m.roughness) == (pytest.approx(0.75), pytest.approx(0.3))
+    assert m.specular == pytest.approx(0.04)
+    om = bl.materials.object_material
+    sharp = om(_principled(bl, "glass", **{"Transmission Weight": 1.0, "Roughness": 0.0}),
+               rep, "o")
+    assert sharp.specular == 0.0
+    rough = _principled(bl, "rough", **{"Metallic": 1.0, "Roughness": 0.5})
+    assert (om(rough, rep, "o").specular, om(rough, rep, "o").shininess) == (1.0, 30.0)
+    rough.riray.custom_highlight = True
+    rough.riray.specular, rough.riray.shininess = 0.5, 40.0
+    assert (om(rough, rep, "o").specular, om(rough, rep, "o").shininess) == (0.5, 40.0)
