@@ -509,7 +509,8 @@ def fingerprint(obj: SpecularObject, max_events: int) -> str:
 
     Covers max_events, every ObjectMaterial field (numbers as float64, strings as UTF-8) and, per
     patch in order, its class_id and either the NURBS degrees, knots, points and weights (float64)
-    or the mesh vertices (float64) and triangles (int64), with their shapes. Names are excluded.
+    or the mesh vertices (float64), triangles (int64) and corner normals where it has them
+    (float64), with their shapes. Names are excluded.
     """
     h = hashlib.sha256(FINGERPRINT_TAG)
     _feed(h, b"E", struct.pack("<q", int(max_events)))
@@ -527,6 +528,8 @@ def fingerprint(obj: SpecularObject, max_events: int) -> str:
         if surf is None:
             _feed_array(h, b"V", patch.vertices, "<f8")
             _feed_array(h, b"T", patch.triangles, "<i8")
+            if patch.normals is not None:
+                _feed_array(h, b"M", patch.normals, "<f8")
         else:
             _feed(h, b"D", struct.pack("<qq", surf.degree_u, surf.degree_v))
             _feed_array(h, b"U", surf.knots_u, "<f8")

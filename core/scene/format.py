@@ -59,9 +59,7 @@ def _camera_dict(c: Camera) -> dict:
 
 def _patch_dict(p: Patch) -> dict:
     if p.is_mesh:
-        return {"kind": "mesh", "name": p.name, "class_id": int(p.class_id),
-                "vertices": np.asarray(p.vertices, dtype=np.float64).tolist(),
-                "triangles": np.asarray(p.triangles, dtype=np.int64).tolist()}
+        return _mesh_patch_dict(p)
     s = p.surface
     return {"kind": "nurbs", "name": p.name, "class_id": int(p.class_id),
             "degree_u": int(s.degree_u), "degree_v": int(s.degree_v),
@@ -69,6 +67,15 @@ def _patch_dict(p: Patch) -> dict:
             "knots_v": np.asarray(s.knots_v, dtype=np.float64).tolist(),
             "points": np.asarray(s.points, dtype=np.float64).tolist(),
             "weights": np.asarray(s.weights, dtype=np.float64).tolist()}
+
+
+def _mesh_patch_dict(p: Patch) -> dict:
+    out = {"kind": "mesh", "name": p.name, "class_id": int(p.class_id),
+           "vertices": np.asarray(p.vertices, dtype=np.float64).tolist(),
+           "triangles": np.asarray(p.triangles, dtype=np.int64).tolist()}
+    if p.normals is not None:
+        out["normals"] = np.asarray(p.normals, dtype=np.float64).tolist()
+    return out
 
 
 def _mesh_dict(m: Mesh) -> dict:

@@ -93,13 +93,18 @@ class ObjectMaterial:
 @dataclass
 class Patch:
     """One patch of the specular object: a rational NURBS surface (Bezier is the special case)
-    or a triangle mesh (flat-shaded triangles; one patch id for the whole mesh)."""
+    or a triangle mesh (one patch id for the whole mesh). A mesh is flat shaded, or smooth
+    where ``normals`` gives each triangle corner its unit normal (the shading normal at a hit
+    is their barycentric blend); a ray crossing a mesh enters the object through the front
+    of a triangle (its winding normal (v1-v0)x(v2-v0) faces the ray) and leaves through its
+    back."""
 
     name: str
     class_id: int
     surface: NurbsSurface | None = None
     vertices: np.ndarray | None = None   # (n, 3) float64, mesh patches only
     triangles: np.ndarray | None = None  # (m, 3) int64, mesh patches only
+    normals: np.ndarray | None = None    # (m, 3, 3) float64 unit corner normals, or None (flat)
 
     @property
     def is_mesh(self) -> bool:

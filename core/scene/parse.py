@@ -19,7 +19,8 @@ from .model import (Camera, Light, Material, Mesh, ObjectMaterial, Patch, Render
                     SpecularObject, Texture, World)
 from .validate import (MAX_COORD, SceneError, read_array, at_key, read_boolean, check_object_offset,
                        read_coords, fail, read_integer, read_kind, read_list, read_number, read_fields, read_point3,
-                       check_positive, read_rgb, read_string, type_name, check_unique, read_vec3)
+                       check_positive, read_corner_normals, read_rgb, read_string, type_name,
+                       check_unique, read_vec3)
 
 # Most surface events per ray (render.max_events): each is one intersection pass over the rays
 # still bouncing, so a ray trapped in the object costs max_events passes.
@@ -175,11 +176,7 @@ def _faces(d: dict, path: str, nverts: int) -> np.ndarray:
 def _patch(v, path: str) -> Patch:
     kind = read_kind(v, path, ("nurbs", "mesh"), None)
     if kind == "mesh":
-        read_fields(v, path, ("kind", "name", "class_id", "vertices"), FACE_KEYS, " for a mesh patch")
-        verts = read_coords(v["vertices"], at_key(path, "vertices"), (None, 3))
-        return Patch(name=read_string(v["name"], at_key(path, "name")),
-                     class_id=read_integer(v["class_id"], at_key(path, "class_id"), 0, MAX_CLASS_ID),
-                     vertices=verts, triangles=_faces(v, path, len(verts)))
+        return _mesh_patch(v, path)
     read_fields(v, path, ("kind", "name", "class_id", "degree_u", "degree_v", "knots_u", "knots_v",
                    "points"), ("weights",), " for a nurbs patch")
     name = read_string(v["name"], at_key(path, "name"))
@@ -215,6 +212,20 @@ def _patch(v, path: str) -> Patch:
     except GeometryError as e:
         raise SceneError(str(e)) from None
     return Patch(name=name, class_id=class_id, surface=surf)
+
+
+def _mesh_patch(v, path: str) -> Patch:
+    """A mesh patch; its optional "normals" are per triangle corner, in the order the faces
+    triangulate (``_faces``)."""
+    read_fields(v, path, ("kind", "name", "class_id", "vertices"), FACE_KEYS + ("normals",),
+                " for a mesh patch")
+    verts = read_coords(v["vertices"], at_key(path, "vertices"), (None, 3))
+    tris = _faces(v, path, len(verts))
+    normals = (read_corner_normals(v["normals"], at_key(path, "normals"), len(tris))
+               if "normals" in v else None)
+    return Patch(name=read_string(v["name"], at_key(path, "name")),
+                 class_id=read_integer(v["class_id"], at_key(path, "class_id"), 0, MAX_CLASS_ID),
+                 vertices=verts, triangles=tris, normals=normals)
 
 
 def _mesh(v, path: str, materials: dict) -> Mesh:

@@ -18,6 +18,9 @@ import numpy as np
 MAX_NUMBER = 1e12
 MAX_COORD = 1e5
 MAX_OBJECT_OFFSET = 1e4
+# A mesh's corner normal must have length 1 within this (float32 normals, as Blender stores
+# them, are unit to ~1e-7; a normal off by more was not normalized).
+UNIT_NORMAL_TOL = 1e-3
 
 
 class SceneError(ValueError):
@@ -166,6 +169,19 @@ def read_rgb(v, path: str) -> tuple[float, float, float]:
         i = int(np.argmax(c < 0))
         fail(at_key(path, i), f"colour components must be >= 0 (got {float(c[i])!r})")
     return tuple(float(x) for x in c)
+
+
+def read_corner_normals(v, path: str, count: int) -> np.ndarray:
+    """A mesh's corner normals: (count, 3, 3), one finite unit vector per triangle corner,
+    each of length 1 within UNIT_NORMAL_TOL."""
+    arr = read_array(v, path, (count, 3, 3))
+    length = np.linalg.norm(arr, axis=2)
+    bad = np.abs(length - 1.0) > UNIT_NORMAL_TOL
+    if bad.any():
+        i, j = (int(x) for x in np.argwhere(bad)[0])
+        fail(f"{path}[{i}][{j}]", f"a normal must have unit length (got length "
+                                  f"{float(length[i, j]):.6g})")
+    return arr / length[:, :, None]
 
 
 def check_positive(arr: np.ndarray, path: str, what: str) -> None:

@@ -79,9 +79,12 @@ class MeshHit:
 
 
 class MeshSet:
-    """The union of a list of ``Mesh`` with a BVH over its triangles."""
+    """The union of a list of ``Mesh`` with a BVH over its triangles. ``corner_normals``:
+    optionally, per mesh, its unit normal at every triangle corner (m, 3, 3) or None: a mesh
+    with them is smooth, shaded by their blend (custom split normals), instead of by its
+    smooth flag."""
 
-    def __init__(self, meshes: list[Mesh]):
+    def __init__(self, meshes: list[Mesh], corner_normals: list | None = None):
         self.meshes = list(meshes)
         verts, faces, uvs, tri_mesh, smooth = [], [], [], [], []
         base = 0
@@ -135,6 +138,7 @@ class MeshSet:
         corner = lambda a: np.ascontiguousarray(a[self.faces].transpose(1, 2, 0))
         self._corner_xyz = corner(self.vertices)
         self._corner_nrm = corner(self.vertex_normals)
+        self._set_corner_normals(corner_normals)
         self._corner_uv = corner(self.uvs)
         self._geo_t = np.ascontiguousarray(self.geo_normal.T)
         self._v0 = np.ascontiguousarray(v0.T)
@@ -147,6 +151,24 @@ class MeshSet:
         self.pad = pad
         self.bvh = BVH.build(lo - pad, hi + pad, LEAF_SIZE)
         self._build_tiers(lo, hi, pad, diag)
+
+    def _set_corner_normals(self, corner_normals):
+        """Smooth the triangles of the meshes given corner normals, shaded by those."""
+        if corner_normals is None:
+            return
+        if len(corner_normals) != len(self.meshes):
+            raise ValueError(f"corner_normals: one entry per mesh ({len(self.meshes)}), got "
+                             f"{len(corner_normals)}")
+        for k, cn in enumerate(corner_normals):
+            if cn is None:
+                continue
+            rows = np.flatnonzero(self.tri_mesh == k)
+            cn = np.asarray(cn, dtype=np.float64)
+            if cn.shape != (len(rows), 3, 3):
+                raise ValueError(f"mesh {self.meshes[k].name!r}: corner normals must be "
+                                 f"({len(rows)}, 3, 3), got {cn.shape}")
+            self._corner_nrm[:, :, rows] = cn.transpose(1, 2, 0)
+            self.tri_smooth[rows] = True
 
     def _build_tiers(self, lo, hi, pad, diag):
         """The quads (see the module docstring) and the BVH over the other triangles."""

@@ -7,8 +7,12 @@ A ray is followed through the chain of reflections/refractions its material call
   glass       refract (IOR), total internal reflection where Snell has no solution; no Fresnel
   dielectric  at the first hit the ray splits: a reflected ray (weight = exact unpolarized
               Fresnel reflectance) and the transmitted chain, which then behaves as glass
-The medium is tracked by parity (the ray starts outside; each refraction toggles inside /
-outside), so the result does not depend on which way the patch normals point.
+On NURBS patches the medium is tracked by parity (the ray starts outside; each refraction
+toggles inside / outside), so the result does not depend on which way the patch normals point.
+A mesh patch says itself which side a ray is on: it enters the object through the front of a
+triangle (its winding normal facing the ray) and leaves through the back, whatever it crossed
+before (open meshes, as Blender's renderers treat them). On smooth meshes events use the
+shading normal as ``eventnormal`` makes it sound.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..scene.model import ObjectMaterial
+from .eventnormal import event_normal, oriented, reflect, refract
 from .patches import PatchHit, PatchTracer
 
 # Secondary rays start on the surface (to ~1e-11 of the object size after Newton); hits nearer
@@ -80,23 +85,6 @@ class ObjectRays:
         return ObjectRays(**{k: v[idx] for k, v in self.__dict__.items()})
 
 
-def reflect(d, n):
-    """Mirror directions d about unit normals n (either orientation)."""
-    return d - 2.0 * np.einsum("ij,ij->i", d, n)[:, None] * n
-
-
-def refract(d, n, eta):
-    """Snell refraction of unit d through unit n facing against d, eta = n_from / n_to.
-    Returns (directions, tir) where tir marks total internal reflection (direction reflected)."""
-    cos_i = -np.einsum("ij,ij->i", d, n)
-    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
-    tir = k < 0.0
-    cos_t = np.sqrt(np.maximum(k, 0.0))
-    t = eta[:, None] * d + (eta * cos_i - cos_t)[:, None] * n
-    out = np.where(tir[:, None], reflect(d, n), t)
-    return out / np.linalg.norm(out, axis=1)[:, None], tir
-
-
 def fresnel_dielectric(cos_i, eta):
     """Exact unpolarized Fresnel reflectance, cos_i >= 0 the incidence cosine, eta = n1/n2."""
     sin_t2 = eta * eta * (1.0 - cos_i * cos_i)
@@ -157,13 +145,12 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
                      events=np.zeros(n, np.int64), refl_dir=np.zeros((n, 3)), fresnel=np.zeros(n),
                      tree=np.zeros(n, np.uint32),
                      uv=tracer.normalized_uv(first.patch, first.u, first.v))
-    flip = np.einsum("ij,ij->i", res.normal, d) > 0.0
-    res.normal[flip] *= -1.0
+    res.normal, _, _ = oriented(d, first.normal, first.geo_normal)
 
     act = np.flatnonzero(first.hit)
     cur_o, cur_d = o[act], d[act]
-    pts, nrm = first.point[act], res.normal[act]
-    patch = first.patch[act]
+    pts, patch = first.point[act], first.patch[act]
+    nrm, geo, back = oriented(cur_d, first.normal[act], first.geo_normal[act])
     tree = np.full(len(act), TREE_HASH_SEED, dtype=np.uint64)   # the running ray-tree hash
     inside = np.zeros(len(act), bool) if inside is None else np.asarray(inside, bool)[act].copy()
     ior = float(material.ior)
@@ -171,14 +158,16 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
     for event in range(max_events):
         res.events[act] += 1
         if material.kind == "mirror":
-            new_d = reflect(cur_d, nrm)
+            new_d = reflect(cur_d, event_normal(cur_d, nrm, geo))
         else:
+            on_mesh = tracer.is_mesh[patch]
+            inside = np.where(on_mesh, back, inside)
             eta = np.where(inside, ior, 1.0 / ior)
-            new_d, tir = refract(cur_d, nrm, eta)
+            new_d, tir = refract(cur_d, event_normal(cur_d, nrm, geo, eta), eta)
             if event == 0 and material.kind == "dielectric":
                 cos_i = -np.einsum("ij,ij->i", cur_d, nrm)
                 res.fresnel[act] = fresnel_dielectric(cos_i, eta)
-                res.refl_dir[act] = reflect(cur_d, nrm)
+                res.refl_dir[act] = reflect(cur_d, event_normal(cur_d, nrm, geo))
             inside ^= ~tir
         kind = REFLECT if material.kind == "mirror" else np.where(tir, REFLECT, REFRACT)
         tree = tree_hash_step(tree, patch, kind)
@@ -195,9 +184,7 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
         if record is not None and event < min(RECORDED_EVENTS, max_events - 1):
             record.patch[act, event] = patch
             record.uv[act, event] = tracer.normalized_uv(patch, nxt.u[keep], nxt.v[keep])
-        nrm = nxt.normal[keep]
-        f = np.einsum("ij,ij->i", nrm, cur_d) > 0.0
-        nrm[f] *= -1.0
+        nrm, geo, back = oriented(cur_d, nxt.normal[keep], nxt.geo_normal[keep])
         if len(act) == 0:
             break
     # still hitting after max_events: trapped -> null ray

@@ -118,14 +118,20 @@ class PatchTracer:
         self.piece_bounds = [second_derivative_bounds(x) for x in self.piece_nets]
 
     def _build_meshes(self, obj):
-        meshes, ids = [], []
+        """The mesh patches as one MeshSet (smooth where they carry corner normals):
+        ``mesh_patch[k]`` is the patch id of its mesh k, ``is_mesh[p]`` whether patch p is a
+        mesh."""
+        meshes, normals, ids = [], [], []
         for pid, patch in enumerate(obj.patches):
             if patch.surface is None:
                 meshes.append(Mesh(name=patch.name, vertices=patch.vertices,
                                    triangles=patch.triangles, material=""))
+                normals.append(patch.normals)
                 ids.append(pid)
         self.mesh_patch = np.array(ids, dtype=np.int64)
-        self.meshes = MeshSet(meshes) if meshes else None
+        self.is_mesh = np.zeros(len(obj.patches), bool)
+        self.is_mesh[self.mesh_patch] = True
+        self.meshes = MeshSet(meshes, normals) if meshes else None
 
     @cached_property
     def occlusion_proxy(self):
@@ -177,6 +183,8 @@ class PatchTracer:
         best_t[ok] = mh.t[ok]
         res.point[ok] = mh.point[ok]
         res.normal[ok] = mh.normal[ok]
+        res.geo_normal[ok] = mh.geo_normal[ok]
+        res.tri[ok] = mh.tri[ok]
         res.patch[ok] = pid[ok]
         res.u[ok] = mh.b1[ok]
         res.v[ok] = mh.b2[ok]

@@ -174,6 +174,7 @@ def _record(tracer, o, d, rows, k, s, t, u, v, res):
     res.t[rows] = np.einsum("ij,ij->i", P - o[rows], d[rows])
     res.point[rows] = P
     res.normal[rows] = nrm
+    res.geo_normal[rows] = nrm
     res.patch[rows] = tracer.piece_patch[k]
     res.u[rows], res.v[rows] = u, v
 

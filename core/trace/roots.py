@@ -279,6 +279,8 @@ class RootSearch:
         res.t[rr] = tt
         res.point[rr] = roots.P
         res.normal[rr] = nrm
+        res.geo_normal[rr] = nrm
+        res.tri[rr] = -1
         res.patch[rr] = pid
         res.u[rr] = u
         res.v[rr] = v

@@ -477,6 +477,7 @@ def moved_point(obj):
     lambda o: setattr(o.patches[0].surface, "degree_v", 3),
     lambda o: o.patches[1].vertices.__setitem__((2, 2), 1e-15),
     lambda o: setattr(o.patches[1], "triangles", np.array([[0, 2, 1]])),
+    lambda o: setattr(o.patches[1], "normals", np.tile([0.0, 0.0, 1.0], (1, 3, 1))),
     lambda o: o.patches.reverse(),
     lambda o: o.patches.pop(),
 ])
