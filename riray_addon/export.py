@@ -12,7 +12,8 @@ The specular object:
   Splines that are curves (one row of points) are skipped with a warning.
 - MESH objects, CURVE objects with extrude/bevel/fill, metaballs: the evaluated mesh as polygonal
   patches; faces are split into equivalence classes along sharp edges and around flat-shaded
-  faces (one core patch per class).
+  faces (one core patch per class); smooth classes carry Blender's corner normals (smooth
+  shading, custom split normals).
 Classes: each spline is its own class unless splines share a group (object.riray.spline_groups)
 or a material with material.riray.join_class.
 
@@ -181,6 +182,26 @@ class EvaluatedMesh:
         return {"vertices": verts, "tris": tris.reshape(-1, 3), "tri_poly": tri_poly,
                 "poly_material": pmat, "poly_smooth": psmooth, "uvs": uvs}
 
+    def corner_normals(self) -> np.ndarray | None:
+        """(m, 3, 3) unit world-space normals at the corners of the loop triangles, in the
+        order and winding of ``arrays``' tris: Blender's shading normals (interpolated vertex
+        normals, sharp edges and flat faces split, custom split normals); None where every
+        face is flat (the triangles' own normals)."""
+        me = self.mesh
+        if me.normals_domain == "FACE":
+            return None
+        me.calc_loop_triangles()
+        nt = len(me.loop_triangles)
+        loops = np.empty(nt * 3, dtype=np.int64)
+        me.loop_triangles.foreach_get("loops", loops)
+        local = np.empty(len(me.loops) * 3)
+        me.corner_normals.foreach_get("vector", local)
+        # normals map by the inverse transpose of the linear part (rows: n @ inv(M))
+        n = local.reshape(-1, 3)[loops] @ np.linalg.inv(self.matrix[:3, :3])
+        n /= np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
+        n = n.reshape(nt, 3, 3)
+        return n[:, ::-1] if np.linalg.det(self.matrix[:3, :3]) < 0 else n
+
     def smooth_classes(self) -> np.ndarray:
         """(P,) class label per polygon: polygons joined across edges that are not sharp and
         whose two faces are both smooth-shaded (labels 0..k-1 in order of first polygon)."""
@@ -298,6 +319,7 @@ def _mesh_patches(obj, depsgraph, report: Report) -> tuple[list[Patch], list]:
             raise ExportError(f"{obj.name}: nothing to export: {what}")
         arr = em.arrays(with_uvs=False)
         labels = em.smooth_classes()
+        normals = em.corner_normals()
     slots = _material_slots(obj)
     pmat = arr["poly_material"]
     # material join: all faces of a joining material form one class
@@ -319,13 +341,19 @@ def _mesh_patches(obj, depsgraph, report: Report) -> tuple[list[Patch], list]:
         vid, inv = np.unique(tris.ravel(), return_inverse=True)
         patches.append(Patch(name=f"{obj.name}.class{cid:03d}", class_id=cid,
                              vertices=arr["vertices"][vid].copy(),
-                             triangles=inv.reshape(-1, 3).astype(np.int64)))
+                             triangles=inv.reshape(-1, 3).astype(np.int64),
+                             normals=_class_normals(normals, sel, arr)))
         mi = int(pmat[arr["tri_poly"][sel][0]])
         used_mats.append(slots[mi] if mi < len(slots) else None)
-    if np.any(arr["poly_smooth"]):
-        report.warning(f"{obj.name}: smooth shading of mesh faces is not simulated; the "
-                       "object is traced as flat triangles")
     return patches, used_mats
+
+
+def _class_normals(normals, sel, arr) -> np.ndarray | None:
+    """The corner normals of the triangles ``sel`` of one class, None for a class of flat
+    faces (or a mesh without smooth shading)."""
+    if normals is None or not np.any(arr["poly_smooth"][arr["tri_poly"][sel]]):
+        return None
+    return normals[sel].copy()
 
 
 def export_object(obj, depsgraph, report: Report | None = None) -> SpecularObject:
@@ -618,6 +646,8 @@ def specular_fingerprint(so) -> str:
         else:
             h.update(np.ascontiguousarray(np.round(p.vertices / q).astype(np.int64)).tobytes())
             h.update(np.ascontiguousarray(p.triangles).tobytes())
+            if p.normals is not None:
+                h.update(np.ascontiguousarray(np.round(p.normals, 6)).tobytes())
     m = so.material
     h.update(repr((m.kind, round(m.ior, 9), tuple(round(x, 9) for x in m.tint))).encode())
     return h.hexdigest()

@@ -136,6 +136,58 @@ def test_mesh_classes_split_at_sharp_edges(bl):
     me.update()
     so = bl.export.export_object(cube, bpy.context.evaluated_depsgraph_get())
     assert len(so.patches) == 6
+    for p in so.patches:                            # split at every edge: each face's normal
+        if p.normals is None:                       # (Blender: every face shades flat)
+            continue
+        v = p.vertices[p.triangles]
+        face = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        face /= np.linalg.norm(face, axis=1)[:, None]
+        assert np.allclose(p.normals, face[:, None, :], atol=1e-6)
+
+
+def _unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def test_smooth_mesh_exports_world_corner_normals(bl):
+    """A smooth UV sphere scaled (1, 1, 3) and rotated: its corner normals are the ellipsoid's
+    normals at the corners (the gradient of its implicit form, a truth independent of Blender's
+    normals) to the tessellation's error; a flat one has none."""
+    bpy = bl.bpy
+    bpy.ops.mesh.primitive_uv_sphere_add(segments=64, ring_count=32, location=(1, 2, 3),
+                                         rotation=(0.3, 0.0, 0.5))
+    ball = bpy.context.active_object
+    ball.scale = (1.0, 1.0, 3.0)
+    bpy.context.view_layer.update()
+    dg = bpy.context.evaluated_depsgraph_get()
+    assert bl.export.export_object(ball, dg).patches[0].normals is None
+    bpy.ops.object.shade_smooth()
+    (p,) = bl.export.export_object(ball, bpy.context.evaluated_depsgraph_get()).patches
+    assert p.normals.shape == (len(p.triangles), 3, 3)
+    assert np.allclose(np.linalg.norm(p.normals, axis=2), 1.0, atol=1e-9)
+    m = np.array(ball.matrix_world)
+    local = (p.vertices[p.triangles] - m[:3, 3]) @ np.linalg.inv(m[:3, :3]).T
+    grad = local @ np.linalg.inv(m[:3, :3])          # n_world ~ grad(|x_local|^2) M^-1
+    cos = np.einsum("ijk,ijk->ij", p.normals, _unit(grad))
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 2.0
+    # the corner normals face the way the winding does (outward)
+    v = p.vertices[p.triangles]
+    face = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    assert (np.einsum("ijk,ik->ij", p.normals, face) > 0).all()
+
+
+def test_custom_split_normals_are_exported(bl):
+    bpy = bl.bpy
+    bpy.ops.mesh.primitive_plane_add(size=2.0, rotation=(0.0, 0.5, 0.0))
+    plane = bpy.context.active_object
+    bpy.ops.object.shade_smooth()
+    me = plane.data
+    tilt = _unit(np.array([0.3, 0.0, 1.0]))
+    me.normals_split_custom_set([tuple(tilt)] * len(me.loops))
+    me.update()
+    (p,) = bl.export.export_object(plane, bpy.context.evaluated_depsgraph_get()).patches
+    want = np.array(plane.matrix_world)[:3, :3] @ tilt      # a rotation: normals turn with it
+    assert np.allclose(p.normals, want, atol=1e-4)         # Blender stores them encoded
 
 
 def test_curve_with_bevel_exports_through_mesh(bl):
@@ -449,7 +501,7 @@ def test_environment_instances_and_excluded_collections(bl):
 
 def test_what_changes_the_image_is_a_warning(bl):
     """Every approximation that changes the image is reported as a warning (Blender shows
-    those): a light's radius, smooth-shaded mesh faces, a named UV map, image interpolation,
+    those): a light's radius, a named UV map, image interpolation,
     objects left out of the environment. Light exposure and temperature are rendered."""
     bpy = bl.bpy
     obj = _add(bpy, "sphere")
@@ -484,12 +536,13 @@ def test_what_changes_the_image_is_a_warning(bl):
     # the texture kinds' reading of the material (the node graph reads it exactly)
     bl.materials._fixed_environment_material(ball.data.materials[0], rep, ball, True)
     warnings = " | ".join(rep.messages("WARNING"))
-    for text in ("light Point: radius 0.2 m ignored", "Sphere: smooth shading of mesh faces",
+    for text in ("light Point: radius 0.2 m ignored",
                  "UV map 'UVMap': the mesh's active UV map is used",
                  "image interpolation Closest -> linear",
                  "Fog: volume objects are not part of the environment"):
         assert text in warnings, text
     assert not rep.messages("INFO"), rep       # (without a world, Blender renders black too)
+    assert "smooth shading" not in warnings   # rendered as Blender shades it
     light = s.lights[0]
     if has_exposure:
         assert light.power == pytest.approx(200.0)
