@@ -20,7 +20,7 @@ from .model import (Camera, Light, Material, Mesh, ObjectMaterial, Patch, Render
 from .validate import (MAX_COORD, SceneError, read_array, at_key, read_boolean, check_object_offset,
                        read_coords, fail, read_integer, read_kind, read_list, read_number, read_fields, read_point3,
                        check_positive, read_corner_normals, read_rgb, read_string, type_name,
-                       check_unique, read_vec3)
+                       check_unique, degenerate_reason, read_vec3)
 
 # Most surface events per ray (render.max_events): each is one intersection pass over the rays
 # still bouncing, so a ray trapped in the object costs max_events passes.
@@ -396,6 +396,10 @@ def parse_scene(d, base_dir: str | None, load_images: bool) -> Scene:
                for i, p in enumerate(read_list(o["patches"], "object.patches"))]
     if not patches:
         fail("object.patches", "the specular object needs at least one patch")
+    reason = degenerate_reason(patches)
+    if reason:
+        fail("object.patches", f"the object is degenerate ({reason}): there is no surface to "
+                               "trace")
     check_object_offset(patches)
     obj = SpecularObject(name=read_string(o.get("name", "object"), "object.name"), patches=patches,
                          material=_object_material(o.get("material", {}), "object.material"))

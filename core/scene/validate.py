@@ -18,6 +18,13 @@ import numpy as np
 MAX_NUMBER = 1e12
 MAX_COORD = 1e5
 MAX_OBJECT_OFFSET = 1e4
+# A degenerate object has no surface to trace: its points (NURBS control points, mesh vertices)
+# span at most COINCIDENT times their distance from the origin (or 1 m), one point up to float
+# rounding; or they lie within COLLINEAR times the object's size of one line (a NURBS surface
+# lies in the hull of its control points, so it has no area; COLLINEAR is the tracer's
+# self-intersection guard, 1e-9 of the size).
+COINCIDENT = 1e-12
+COLLINEAR = 1e-9
 # A mesh's corner normal must have length 1 within this (float32 normals, as Blender stores
 # them, are unit to ~1e-7; a normal off by more was not normalized).
 UNIT_NORMAL_TOL = 1e-3
@@ -211,6 +218,25 @@ def check_unique(items, path: str, what: str) -> None:
         if it.name in seen:
             fail(at_key(at_key(path, i), "name"), f"duplicate {what} name {it.name!r}")
         seen.add(it.name)
+
+
+def degenerate_reason(patches) -> str | None:
+    """Why the object made of ``patches`` is degenerate (its points coincide, or lie on one
+    line), in words for its owner ("all its control points coincide"); None when it is not."""
+    surf = [p.surface.points.reshape(-1, 3) for p in patches if p.surface is not None]
+    mesh = [p.vertices for p in patches if p.surface is None]
+    what = " and ".join(w for w, part in (("control points", surf), ("vertices", mesh)) if part)
+    pts = np.concatenate(surf + mesh)
+    rel = pts - pts[0]
+    size = float(np.linalg.norm(np.ptp(pts, axis=0)))
+    if size <= COINCIDENT * max(1.0, float(np.abs(pts).max())):
+        return f"all its {what} coincide"
+    far = rel[np.argmax(np.einsum("ij,ij->i", rel, rel))]
+    axis = far / np.linalg.norm(far)
+    off = rel - np.outer(rel @ axis, axis)
+    if np.sqrt(np.einsum("ij,ij->i", off, off).max()) <= COLLINEAR * size:
+        return f"all its {what} lie on one line, so it has no area"
+    return None
 
 
 def check_object_offset(patches) -> None:

@@ -44,6 +44,18 @@ def _decreasing(d):
     k[3], k[4] = 0.9, 0.1
 
 
+def _points_to(make):
+    """Every control point of the sphere replaced: make(n) -> (n, 3) new positions."""
+    def edit(d):
+        pts = np.asarray(_patch(d)["points"], float)
+        _patch(d)["points"] = make(pts[..., 0].size).reshape(pts.shape).tolist()
+    return edit
+
+
+ONE_POINT_2M = _points_to(lambda n: np.tile([2.0, 0.0, 0.0], (n, 1)))
+ON_A_LINE = _points_to(lambda n: np.outer(np.linspace(-1.0, 1.0, n), [0.3, -0.2, 0.9]))
+
+
 P0 = ("object", "patches", 0)
 # name -> (edit of the scene dict, the field the message must name, a word of the problem)
 CASES = {
@@ -75,6 +87,10 @@ CASES = {
                                "object.patches[0].points[4][2][1]", "magnitude must be <= 100000"),
     "control point moved 1e9 m": (_set(P0 + ("points", 3, 2, 0), 1e9),
                                   "object.patches[0].points[3][2][0]", "magnitude"),
+    "control points at one point 2 m out": (ONE_POINT_2M, "object.patches",
+                                            "degenerate (all its control points coincide)"),
+    "control points on one line": (ON_A_LINE, "object.patches",
+                                   "degenerate (all its control points lie on one line"),
     "light power 1e308": (_set(("lights", 0, "power"), 1e308), "lights[0].power",
                           "magnitude must be <= 1e+12"),
 }

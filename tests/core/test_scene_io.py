@@ -229,6 +229,43 @@ def test_object_far_from_the_origin_for_its_size():
                              errmsg(d))
 
 
+def test_degenerate_object_refused_flat_and_thin_ones_load():
+    """An object whose points all coincide, or lie on one line (no area), is refused naming
+    what is wrong, for NURBS control points and mesh vertices alike, wherever it lies; a flat
+    object, and a ribbon 1e-6 of its length wide, load."""
+    rng = np.random.default_rng(3)
+    u = np.array([2.0, -1.0, 0.5]) / np.linalg.norm([2.0, -1.0, 0.5])
+    w = np.cross(u, [0.0, 0.0, 1.0])
+    w /= np.linalg.norm(w)
+
+    def with_points(place):
+        """minimal()'s object with every point placed by place(k) for k points, shape (k, 3)."""
+        d = minimal()
+        for p in d["object"]["patches"]:
+            key = "points" if p["kind"] == "nurbs" else "vertices"
+            shape = np.shape(p[key])
+            p[key] = place(int(np.prod(shape[:-1]))).reshape(shape).tolist()
+        return d
+
+    along = lambda k: 3.0 + rng.uniform(-1, 1, (k, 1)) * u             # noqa: E731
+    cases = {"coincide": lambda k: np.tile([40.0, 2.0, -7.0], (k, 1)),
+             "lie on one line": along}
+    for words, place in cases.items():
+        msg = errmsg(with_points(place))
+        assert msg.startswith("object.patches: the object is degenerate (all its control points "
+                              f"and vertices {words}"), msg
+        assert "from the origin" not in msg
+    for kind in ("nurbs", "mesh"):
+        d = with_points(along)
+        d["object"]["patches"] = [p for p in d["object"]["patches"] if p["kind"] == kind]
+        what = "control points" if kind == "nurbs" else "vertices"
+        assert f"(all its {what} lie on one line" in errmsg(d)
+    flat = lambda k: along(k) + rng.uniform(-1, 1, (k, 1)) * w         # noqa: E731
+    ribbon = lambda k: along(k) + rng.uniform(-1e-6, 1e-6, (k, 1)) * w  # noqa: E731
+    for place in (flat, ribbon):
+        assert len(scene_from_dict(with_points(place)).object.patches) == 2
+
+
 def test_tolerates_near_rigid_camera():
     c = 1 / math.sqrt(2)
     d = mutate(CAM + ["matrix_world"], [[c, -c, 0, 1], [c, c + 1e-8, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]])
