@@ -31,6 +31,7 @@ from ..core.geometry.knots import GeometryError, surface_from_blender
 from ..core.geometry.primitives import transform
 from ..core.scene.model import (Camera, Light, Mesh, Patch, RenderSettings, Scene,
                                 SpecularObject, World)
+from ..core.scene.validate import degenerate_reason
 from . import materials as matmap
 from .nodegraph import SurfaceContext, object_random_id
 from .properties import spline_group
@@ -43,9 +44,6 @@ IDENTITY_TOL = 1e-9
 # Fingerprint grid: world coordinates are hashed in units of this fraction of the object's box
 # diagonal (float32 noise from editing transforms stays below it; real edits do not).
 FINGERPRINT_QUANTUM = 1e-6
-# An object whose extent is at most this fraction of its distance from the origin (or of 1 m)
-# has zero size: float rounding of one repeated point, nothing to trace.
-ZERO_SIZE = 1e-12
 
 
 # --------------------------------------------------------------------------- small helpers
@@ -384,7 +382,7 @@ def export_object(obj, depsgraph, report: Report | None = None) -> SpecularObjec
                               "splines (only curves or invalid splines)")
     else:
         patches, used = _mesh_patches(obj, depsgraph, report)
-    _check_size(obj.name, patches)
+    _check_shape(obj.name, patches)
     distinct = []
     for m in used:
         if m not in distinct:
@@ -398,14 +396,13 @@ def export_object(obj, depsgraph, report: Report | None = None) -> SpecularObjec
                           material=matmap.object_material(mat, report, obj.name))
 
 
-def _check_size(name: str, patches) -> None:
-    """ExportError for an object of zero size (every control point or vertex in one place)."""
-    surf = [p.surface.points.reshape(-1, 3) for p in patches if p.surface is not None]
-    pts = np.concatenate(surf + [p.vertices for p in patches if p.surface is None])
-    if np.ptp(pts, axis=0).max() <= ZERO_SIZE * max(1.0, float(np.abs(pts).max())):
-        what = "control points" if surf else "vertices"
-        raise ExportError(f"{name}: the object has zero size (all its {what} lie at one "
-                          "point): there is no surface to render or bake")
+def _check_shape(name: str, patches) -> None:
+    """ExportError for a degenerate object: its control points or vertices all in one place or
+    on one line (core's scene validation, in the object's name)."""
+    reason = degenerate_reason(patches)
+    if reason:
+        raise ExportError(f"{name}: the object is degenerate ({reason}): there is no surface to "
+                          "render or bake")
 
 
 # --------------------------------------------------------------------------- environment

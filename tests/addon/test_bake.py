@@ -282,23 +282,40 @@ def test_refused_setting_is_not_kept(bl, tmp_path):
     assert (p.viewpoint_depth, p.direction_depth, p.viewpoint_refine) == (3, 1, 0)
 
 
-def test_zero_size_object_refused(bl, tmp_path):
-    """A NURBS surface whose control points all coincide is refused before any work, naming
-    the object and its zero size; no temporary folder is left."""
+def test_degenerate_object_refused(bl, tmp_path):
+    """A NURBS surface whose control points all coincide (away from the origin), or lie on one
+    line (scaled to zero in two axes, or edited so), is refused by Bake, Estimate and F12 before
+    any work, naming the object and what is wrong; no worker starts, no temporary folder is
+    left."""
     import glob
     import tempfile
     bpy = bl.bpy
     obj, _ = _setup(bl, tmp_path)
-    obj.location = (2, 0, 0)
-    for pt in obj.data.splines[0].points:
-        pt.co = (0.3, 0.2, 0.1, 1.0)
-    bpy.context.view_layer.update()
+    points = [tuple(pt.co) for pt in obj.data.splines[0].points]
+    bpy.context.scene.render.resolution_x = bpy.context.scene.render.resolution_y = 8
     pattern = os.path.join(tempfile.gettempdir(), "riray_bake_*")
     before = set(glob.glob(pattern))
     last_job = bl.jobs.JOBS.get(obj.name)
-    for op in (bpy.ops.riray.bake, bpy.ops.riray.bake_estimate):
-        with pytest.raises(RuntimeError, match="SurfSphere: the object has zero size \\(all its "
-                                               "control points lie at one point\\)"):
-            op(object=obj.name)
-    assert set(glob.glob(pattern)) == before
-    assert bl.jobs.JOBS.get(obj.name) is last_job
+
+    def refused(words):
+        bpy.context.view_layer.update()
+        for op in (bpy.ops.riray.bake, bpy.ops.riray.bake_estimate):
+            with pytest.raises(RuntimeError) as err:
+                op(object=obj.name)
+            assert f"SurfSphere: the object is degenerate (all its control points {words}" \
+                in str(err.value) and "origin" not in str(err.value)
+        with pytest.raises(RuntimeError, match="SurfSphere: the object is degenerate"):
+            bpy.ops.render.render()
+        assert set(glob.glob(pattern)) == before and bl.jobs.JOBS.get(obj.name) is last_job
+
+    obj.location = (2, 0, 0)
+    for pt in obj.data.splines[0].points:
+        pt.co = (0.3, 0.2, 0.1, 1.0)
+    refused("coincide")
+    for i, pt in enumerate(obj.data.splines[0].points):
+        pt.co = (0.01 * i, -0.02 * i, 0.0, 1.0)
+    refused("lie on one line")
+    for pt, co in zip(obj.data.splines[0].points, points):
+        pt.co = co
+    obj.rotation_euler, obj.scale = (0.3, 0.5, 0.7), (1.0, 0.0, 0.0)
+    refused("lie on one line")
