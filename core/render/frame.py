@@ -170,9 +170,22 @@ def share_size(n: int, workers: int, per_worker: int = 1) -> int:
 
 def peak_rss_mib() -> float:
     """Peak resident memory (MiB) of this process or of any finished child (a worker pool)."""
-    kib = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
-              resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
-    return kib / 1024.0
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return max(_own_peak_rss_kib(), children) / 1024.0
+
+
+def _own_peak_rss_kib() -> int:
+    """This process's peak resident memory (KiB): Linux's VmHWM where /proc has it, since
+    getrusage's figure also holds the peak of the process that started this one (a program
+    started from Blender would report Blender's memory); else getrusage's."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 
 
 @dataclass

@@ -121,6 +121,18 @@ def test_render_sample_name_and_defaults(tmp_path, capsys):
     capsys.readouterr()
 
 
+def test_render_peak_memory_is_its_own(files, tmp_path):
+    """riray render started by a process holding much more memory (as Blender would) reports
+    its own peak RSS, not its parent's: the parent's 600 MiB stay out of the child's figure."""
+    held = np.ones(600 * 2**20 // 8)          # touched: resident in this process
+    res = subprocess.run([sys.executable, "-m", "riray.cli", "render", str(files / "sphere.json"),
+                          "--out", str(tmp_path / "img"), "--workers", "1", "--quiet"],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    peak = json.loads(res.stdout)["peak_rss_mib"]
+    assert 0 < peak < held.nbytes / 2**20 / 2, peak
+
+
 def _crafted_rays():
     c = _sphere_centre()
     r = GLASS_SPHERE_RADIUS
