@@ -27,10 +27,10 @@ SAMPLES_PER_EXTRA = 2        # ... and at least 2 extra samples when a leaf's ex
 TRACER_KEYS = ("pairs", "newton_iters", "fallback_pairs")
 
 
-def bake_view(st, scene, cam, size, params, workers, tree_dir) -> tuple:
-    """Bake the tree for camera ``cam`` at size x size, save it, load it back.
-    Returns (tree, bake record)."""
-    region = region_for_cameras(st, params, [cam], size, size)
+def bake_view(st, scene, cam, size, params, workers, tree_dir, height=None) -> tuple:
+    """Bake the tree for camera ``cam`` at size x size pixels (size x ``height`` where given),
+    save it, load it back. Returns (tree, bake record)."""
+    region = region_for_cameras(st, params, [cam], size, size if height is None else height)
     c0, t0 = cpu_seconds(), time.perf_counter()
     tree = bake(st, params, region, workers=workers)
     wall, cpu = time.perf_counter() - t0, cpu_seconds() - c0

@@ -206,6 +206,53 @@ def test_bench_scripts_start(script, tmp_path):
     assert res.returncode == 0 and "usage:" in res.stdout, res.stdout + res.stderr
 
 
+@pytest.fixture(scope="module")
+def blender_bench(blender):
+    spec = importlib.util.spec_from_file_location("riray_blender_bench",
+                                                  ROOT / "sample_scenes" / "blender_bench.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_blender_bench_sizes_and_quality(blender_bench):
+    """blender_bench.py --size N is N x N pixels, --size WxH is W wide and H high; its tree is
+    baked at the product's default settings (BakeParams' defaults, the paper's depths 5 / 6)
+    unless --quality names another preset (fast: depths 4 / 5)."""
+    from riray.ritree.params import BakeParams
+    parse = blender_bench.parse_args
+    assert parse(["--size", "300"]).size == (300, 300)
+    assert parse(["--size", "1920x1080"]).size == (1920, 1080)
+    assert parse(["--size", "64X48"]).size == (64, 48)
+    default = parse([])
+    assert default.size == (300, 300) and default.quality == "default"
+    assert default.params == BakeParams()
+    assert (default.params.viewpoint_depth, default.params.direction_depth) == (5, 6)
+    fast = parse(["--quality", "fast"]).params
+    assert (fast.viewpoint_depth, fast.direction_depth) == (4, 5)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--size", "1920by1080"], "argument --size: '1920by1080': expected N or WIDTHxHEIGHT"),
+    (["--size", "1920x1080x2"], "argument --size: '1920x1080x2': expected N or WIDTHxHEIGHT"),
+    (["--size", "0x300"], "argument --size: '0x300': image width must be 1.."),
+    (["--size", "300x99999"], "argument --size: '300x99999': image height must be 1.."),
+    (["--quality", "best"], "argument --quality: invalid choice: 'best'"),
+])
+def test_blender_bench_bad_input(tmp_path, args, message):
+    """Bad input to blender_bench.py: exit status 2 and one line naming it, before any work
+    (no output folder, no render)."""
+    res = subprocess.run([sys.executable, str(ROOT / "sample_scenes" / "blender_bench.py"),
+                          *args, "--out", str(tmp_path / "out")],
+                         capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "BLENDER_USER_RESOURCES": str(tmp_path / "bl_user")})
+    assert res.returncode == 2, res.stdout + res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("blender_bench.py: error: "), res.stderr
+    assert message in lines[0], lines[0]
+    assert not (tmp_path / "out").exists()
+
+
 def test_animation_bench_refuses_one_frame(tmp_path):
     """animation_bench.py --frames 1: one line and exit status 2, before any build or bake."""
     res = subprocess.run([sys.executable, str(ROOT / "sample_scenes" / "animation_bench.py"),
