@@ -1,4 +1,5 @@
-"""Reductions along a short last axis (3-16 elements), done as whole-column operations.
+"""Reductions along a short last axis (3-16 elements), done as whole-column operations, and
+the unique rows of a table by one sort of its columns.
 
 Numpy reduces a short axis with an inner loop per row, which costs 10-200x more per element
 than column-wise ufuncs over the long axis (measured on (55K, 3-4) arrays: ``min(axis=1)``
@@ -52,3 +53,20 @@ def argmax3(x: np.ndarray) -> np.ndarray:
 def norm3(x: np.ndarray) -> np.ndarray:
     """Euclidean length of each row of (n, 3)."""
     return np.sqrt(np.einsum("ij,ij->i", x, x))
+
+
+def unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(unique rows sorted lexicographically, inverse) of a 2-D array, as
+    ``np.unique(a, axis=0, return_inverse=True)`` gives them but by one lexsort of the columns
+    (numpy's row unique sorts the rows as opaque byte strings: ten times slower on a 200k-face
+    mesh's corners). Rows are equal where every column compares equal (so -0.0 == 0.0)."""
+    a = np.asarray(a)
+    if len(a) == 0:
+        return a.copy(), np.zeros(0, np.int64)
+    order = np.lexsort(a.T[::-1])
+    s = a[order]
+    new = np.ones(len(s), bool)
+    new[1:] = any_last(s[1:] != s[:-1])
+    inv = np.empty(len(a), np.int64)
+    inv[order] = np.cumsum(new) - 1
+    return s[new], inv

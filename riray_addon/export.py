@@ -29,6 +29,7 @@ import numpy as np
 
 from ..core.geometry.knots import GeometryError, surface_from_blender
 from ..core.geometry.primitives import transform
+from ..core.rowops import unique_rows
 from ..core.scene.model import (Camera, Light, Mesh, Patch, RenderSettings, Scene,
                                 SpecularObject, World)
 from ..core.scene.validate import degenerate_reason
@@ -451,7 +452,7 @@ def _env_meshes(obj, depsgraph, materials: dict, cache: "matmap.EnvironmentMater
                 # vertices carry one uv each: split where a vertex has several uvs
                 uv = arr["uvs"][sel].reshape(-1, 2)
                 key_arr = np.concatenate([tris.reshape(-1, 1).astype(np.float64), uv], axis=1)
-                uniq, inv = np.unique(key_arr, axis=0, return_inverse=True)
+                uniq, inv = unique_rows(key_arr)
                 verts = arr["vertices"][uniq[:, 0].astype(np.int64)]
                 uvs = uniq[:, 1:].copy()
                 tri = inv.reshape(-1, 3).astype(np.int64)
