@@ -33,7 +33,7 @@ import numpy as np
 from ..core.parallel import map_chunks
 from ..core.render.film import Film
 from ..core.render.frame import ExactAnswerer, shade_share, share_size
-from ..core.ritree.answers import is_traced
+from ..core.ritree.answers import OUTSIDE, is_traced
 from ..core.trace.patches import PatchTracer
 from ..core.trace.scene_tracer import SceneTracer, build_environment
 from . import backend, cache, reuse
@@ -130,9 +130,10 @@ class RirayRenderEngine(bpy.types.RenderEngine):
             ray counts."""
             rays = film.rays(a, b)
             share = shade_share(st, *rays, answerer)
-            color, tr, ang, obj_s, hits = _passes(st, share, rays, want_angle)
+            color, tr, ang, obj_s, hits, outside = _passes(st, share, rays, want_angle)
             part = film.develop(a, b, {"color": color}, {"traced": tr, "angle": ang})
-            return part, obj_s, hits, int(tr.sum()), share.stats.get("solved_along_path", 0)
+            return (part, obj_s, hits, int(tr.sum()), share.stats.get("solved_along_path", 0),
+                    outside)
 
         t_render = time.perf_counter()
         procs = render_processes(scene.riray.render_processes)
@@ -148,11 +149,12 @@ class RirayRenderEngine(bpy.types.RenderEngine):
         traced, angle = ((dev.box[k].ravel() / film.samples).astype(np.float32)
                          for k in ("traced", "angle"))
         hits, n_traced = sum(p[2] for p in parts), sum(p[3] for p in parts)
-        solved = sum(p[4] for p in parts)
+        solved, outside = sum(p[4] for p in parts), sum(p[5] for p in parts)
         stats = {"frame": scene.frame_current, "width": w, "height": h,
                  "samples": film.samples, "object_pixels": hits, "traced_pixels": n_traced,
                  "traced_fraction": n_traced / hits if hits else 0.0,
                  "solved_along_path": solved, "solved_fraction": solved / hits if hits else 0.0,
+                 "outside_fraction": outside / hits if hits else 0.0,
                  "object_time_s": sum(p[1] for p in parts),
                  "render_time_s": time.perf_counter() - t_render, "export_s": export_s,
                  "build_s": build_s, "build_parts_s": frame_parts.seconds,
@@ -161,6 +163,9 @@ class RirayRenderEngine(bpy.types.RenderEngine):
                  "processes": procs}
         self._write((color, traced, angle), region, stats)
         self.update_stats("", status_line(stats))
+        if outside:
+            self.report({"WARNING"}, outside_message(target.name, core_scene.cameras[0].name,
+                                                     stats))
 
     def _export(self, depsgraph):
         """(the specular object, the core scene with the render camera); ExportError if the
@@ -243,14 +248,24 @@ class RirayRenderEngine(bpy.types.RenderEngine):
                            angle=angle.reshape(h, w).copy(), stats=stats)
 
 
+def outside_message(name: str, camera: str, stats: dict) -> str:
+    """The warning for a frame whose object rays left the region the tree was baked for."""
+    return (f"{name}: {100 * stats['outside_fraction']:.0f}% of its pixels lie outside the "
+            f"region its RI-Tree was baked for (camera {camera}, frame {stats['frame']}) and "
+            "were traced exactly: bake again with this camera in place, or with Bake for "
+            "scene cameras > Frame range on for an animation")
+
+
 def status_line(stats: dict) -> str:
     """The status bar's summary of a rendered frame's ``stats``."""
     hits = stats["object_pixels"]
-    solved = (f" | solved along path {100 * stats['solved_fraction']:.1f}%"
-              if stats["solved_along_path"] else "")
+    extra = (f" | solved along path {100 * stats['solved_fraction']:.1f}%"
+             if stats["solved_along_path"] else "")
+    if stats["outside_fraction"]:
+        extra += f" | outside the baked region {100 * stats['outside_fraction']:.1f}%"
     reused = ", ".join(stats["reused"]) or "nothing"
     return (f"RI-Tree Preview | traced {100 * stats['traced_fraction']:.1f}% of {hits} object "
-            f"pixels{solved} | object {stats['object_time_s']:.2f} s | render "
+            f"pixels{extra} | object {stats['object_time_s']:.2f} s | render "
             f"{stats['render_time_s']:.2f} s | export {stats['export_s']:.2f} s | build "
             f"{stats['build_s']:.2f} s (reused {reused})")
 
@@ -274,20 +289,22 @@ def region_film(camera, width: int, height: int, region, samples: int) -> Film:
 
 def _passes(st, share, rays, want_angle: bool):
     """A rendered share's pass values: (colour, traced flag, angle error in degrees against
-    exact tracing when ``want_angle``, object CPU seconds, object rays)."""
+    exact tracing when ``want_angle``, object CPU seconds, object rays, object rays outside the
+    tree's region)."""
     n = len(share.color)
     tr = np.zeros(n, np.float32)
     ang = np.zeros(n, np.float32)
-    hit, ans = share.hit, share.answer
+    hit, ans, outside = share.hit, share.answer, 0
     if len(hit) and ans.answer is not None:
         tr[hit] = is_traced(ans.answer)[ans.rays.hit]
+        outside = int(np.count_nonzero(ans.answer[ans.rays.hit] == OUTSIDE))
         if want_angle:
             used = ans.rays.take(ans.rays.hit)
             exact = st.object_function(rays[0][hit], rays[1][hit])
             ang[hit] = angle_error_deg(used.out_dir, exact.out_dir, used.null, exact.null)
     elif len(hit):
         tr[hit] = 1.0
-    return share.color, tr, ang, share.stats["object_cpu_s"], len(hit)
+    return share.color, tr, ang, share.stats["object_cpu_s"], len(hit), outside
 
 
 # Built-in panels that show for every engine (they list BLENDER_RENDER) but whose settings

@@ -236,6 +236,31 @@ def test_still_through_baked_tree_matches_core(bl, tmp_path):
     assert np.array_equal(last["traced"].reshape(H, W) > 0, ref.masks["traced"])
 
 
+def test_camera_outside_the_baked_region_warns(bl, tmp_path, capfd):
+    """A frame whose camera left the region the tree was baked for: its object rays enter the
+    tree's box in directions the bake never saw (a camera looking along -x, the tree baked for
+    one looking along +y), so every one is traced, and the user is warned - a WARNING report,
+    which Blender shows (and prints as "Warning:"), naming the camera, the frame and what to
+    bake; the status line says it too. At the baked camera nothing is outside, no warning."""
+    bpy = bl.bpy
+    baked_scene(bl, tmp_path, "outside.blend", depths=(2, 3))
+    capfd.readouterr()
+    assert bpy.ops.render.render() == {"FINISHED"}
+    assert bl.engine.LAST_RENDER["stats"]["outside_fraction"] == 0.0
+    assert "outside the region" not in "".join(capfd.readouterr())
+    cam = bpy.context.scene.camera
+    cam.location, cam.rotation_euler = (5.0, 0.0, 1.2), (math.radians(80), 0.0, math.radians(90))
+    assert bpy.ops.render.render() == {"FINISHED"}
+    st = bl.engine.LAST_RENDER["stats"]
+    assert st["mode"] == "tree" and st["object_pixels"] > 50
+    assert st["outside_fraction"] == st["traced_fraction"] == 1.0
+    out = "".join(capfd.readouterr())
+    assert ("Warning: SurfSphere: 100% of its pixels lie outside the region its RI-Tree was "
+            "baked for (camera Camera, frame 1) and were traced exactly: bake again with this "
+            "camera in place, or with Bake for scene cameras > Frame range on") in out, out
+    assert "| outside the baked region 100.0%" in bl.engine.status_line(st)
+
+
 def test_damaged_cache_falls_back_to_tracing(bl, tmp_path):
     """A cache whose header reads (so it looks fresh) but whose last array fails its check:
     the render traces the object exactly instead of failing; with tracing without a tree
