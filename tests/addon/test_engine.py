@@ -358,7 +358,25 @@ def exr_attributes(path) -> dict:
     return out
 
 
-def test_exr_carries_riray_metadata(bl, tmp_path):
+def png_text(path) -> dict:
+    """The tEXt chunks of a PNG file (keyword -> text), read from its bytes."""
+    import struct
+    data = open(path, "rb").read()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    pos, out = 8, {}
+    while pos < len(data):
+        (size,) = struct.unpack_from(">I", data, pos)
+        kind, body = data[pos + 4:pos + 8], data[pos + 8:pos + 8 + size]
+        if kind == b"tEXt":
+            key, _, text = body.partition(b"\0")
+            out[key.decode("latin-1")] = text
+        pos += 12 + size
+    return out
+
+
+def test_saved_images_carry_riray_metadata(bl, tmp_path):
+    """The frame's traced fraction and render time ride in the saved file: string attributes
+    of an EXR header, text chunks of a PNG (what docs/blender.md promises)."""
     bpy = bl.bpy
     build_scene(bl, tmp_path)
     assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
@@ -366,6 +384,14 @@ def test_exr_carries_riray_metadata(bl, tmp_path):
     st = bl.engine.LAST_RENDER["stats"]
     assert attrs["riray traced fraction"] == ("string", f"{st['traced_fraction']:.4f}".encode())
     assert attrs["riray render s"] == ("string", f"{st['render_time_s']:.3f}".encode())
+    render = bpy.context.scene.render
+    render.image_settings.file_format = "PNG"
+    render.filepath = str(tmp_path / "still.png")
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    text = png_text(tmp_path / "still.png")
+    st = bl.engine.LAST_RENDER["stats"]
+    assert text["riray traced fraction"] == f"{st['traced_fraction']:.4f}".encode()
+    assert text["riray render s"] == f"{st['render_time_s']:.3f}".encode()
 
 
 def test_render_region(bl, tmp_path):
