@@ -26,6 +26,39 @@ def test_validator_accepts_zip(extension_zip):
     assert res.returncode == 0, res.stdout + res.stderr
 
 
+def _checkout_files(root) -> set[str]:
+    """Every path under the checkout (ignored ones included), but git's and the venvs'."""
+    import os
+    out = set()
+    for top, dirs, files in os.walk(root):
+        dirs[:] = [d for d in dirs if d != ".git" and not d.startswith(".venv")]
+        rel = os.path.relpath(top, root)
+        out.update(os.path.normpath(os.path.join(rel, n)) for n in dirs + files)
+    return out
+
+
+def test_build_leaves_the_checkout_untouched(tmp_path):
+    """`build_extension.py --out DIR`, as make extension runs it, writes the zip into DIR and
+    nothing into the checkout (it stages in a temporary folder outside it)."""
+    import importlib.util
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[2]
+    script = root / "riray_addon" / "build_extension.py"
+    spec = importlib.util.spec_from_file_location("riray_build_extension_check", script)
+    build = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(build)
+    if build.find_blender_ext() is None:
+        import pytest
+        pytest.skip("Blender's extension tool (blender_ext.py, in the bpy wheel) is not here")
+    before = _checkout_files(root)
+    res = subprocess.run([sys.executable, str(script), "--out", str(tmp_path / "out"),
+                          "--validate"], cwd=root, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["riray-0.1.0.zip"]
+    after = _checkout_files(root)
+    assert after == before, (sorted(after - before), sorted(before - after))
+
+
 def test_installed_and_enabled(blender):
     bpy = blender.bpy
     assert "bl_ext.user_default.riray" in bpy.context.preferences.addons.keys()
