@@ -46,7 +46,8 @@ def target_object(context, name: str = ""):
 
 def camera_views(context, params: dict, report: Report) -> list:
     """Core cameras for every scene camera at every frame of the range (or the current frame),
-    named "<camera>@<frame>": what a camera-driven bake must cover."""
+    named "<camera> (frame <frame>)", as messages show them: what a camera-driven bake must
+    cover."""
     scene = context.scene
     cams = [o for o in scene.objects if o.type == "CAMERA"]
     frames = [scene.frame_current]
@@ -65,7 +66,7 @@ def camera_views(context, params: dict, report: Report) -> list:
                        cam.sensor_width, cam.sensor_height)
                 if key not in seen:                 # a still camera counts once
                     seen.add(key)
-                    cam.name = f"{c.name}@{f}"
+                    cam.name = f"{c.name} (frame {f})"
                     out.append(cam)
     finally:
         if scene.frame_current != keep:

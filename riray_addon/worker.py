@@ -53,6 +53,12 @@ def _write_json(path: str, doc: dict) -> None:
     os.replace(tmp, path)
 
 
+def error_message(exc: BaseException) -> str:
+    """What the user reads of a failed bake: core's refusals (ValueError) are written for them;
+    anything else is a fault, named by its type."""
+    return str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
+
+
 def run(job_dir: str) -> int:
     ext_root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     with open(os.path.join(job_dir, "job.json"), encoding="utf-8") as fh:
@@ -107,7 +113,7 @@ def run(job_dir: str) -> int:
                 pass
         _write_json(result_path, {
             "status": "cancelled" if cancelled else "failed",
-            "error": "" if cancelled else f"{type(exc).__name__}: {exc}",
+            "error": "" if cancelled else error_message(exc),
             "traceback": "" if cancelled else traceback.format_exc(),
             "time": time.time() - t0})
         return 0 if cancelled else 1

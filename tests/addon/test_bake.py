@@ -319,3 +319,20 @@ def test_degenerate_object_refused(bl, tmp_path):
         pt.co = co
     obj.rotation_euler, obj.scale = (0.3, 0.5, 0.7), (1.0, 0.0, 0.0)
     refused("lie on one line")
+
+
+def test_bake_failure_reads_as_the_panel_speaks(bl, tmp_path):
+    """A bake core refuses in the worker (the camera looks away from the object) fails with
+    core's own sentence, the camera named as the scene has it and the frame in words: no
+    exception type, no internal camera name."""
+    bpy = bl.bpy
+    obj, _ = _setup(bl, tmp_path)
+    scene = bpy.context.scene
+    scene.render.resolution_x = scene.render.resolution_y = 16
+    scene.camera.rotation_euler = (math.radians(85), 0, math.radians(180))
+    with pytest.raises(RuntimeError) as err:
+        bpy.ops.riray.bake(object=obj.name, viewpoint_depth=1, direction_depth=1)
+    msg = str(err.value).strip()
+    assert msg == ("Error: bake of SurfSphere failed: camera 'Camera (frame 1)' does not see the "
+                   "object 'SurfSphere' (none of its 16 x 16 pixel rays reaches the object's "
+                   "bounding box); nothing to bake"), msg
