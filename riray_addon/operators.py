@@ -11,6 +11,7 @@ unless ``wait=False`` (then a bpy.app.timers function finishes it; in background
 
 import json
 import os
+import re
 import time
 
 import bpy
@@ -95,9 +96,16 @@ def checked_params(obj, options: dict | None = None) -> dict:
     try:
         backend.bake_params(params)
     except ValueError as exc:          # a rule the checks above do not know
-        rule = str(exc).split(" (got ")[0]      # without core's list of internal parameters
-        raise ExportError(f"{obj.name}: the bake settings are refused: {rule}") from None
+        raise ExportError(f"{obj.name}: the bake settings are refused: "
+                          f"{panel_terms(str(exc), label)}") from None
     return params
+
+
+def panel_terms(rule: str, label: dict) -> str:
+    """Core's refusal of bake parameters in the panel's terms: without its prefix and its dump
+    of every parameter, each setting called by its ``label``."""
+    rule = rule.split(" (got ")[0].removeprefix("bake parameters: ")
+    return re.sub(r"\b[a-z]+(?:_[a-z]+)+\b", lambda m: label.get(m[0], m[0]), rule)
 
 
 def prepare_bake(context, obj, report: Report):

@@ -282,6 +282,18 @@ def test_refused_setting_is_not_kept(bl, tmp_path):
     assert (p.viewpoint_depth, p.direction_depth, p.viewpoint_refine) == (3, 1, 0)
 
 
+def test_core_refusals_use_the_panels_labels(bl, tmp_path):
+    """A bake setting core refuses by a rule the add-on does not check itself (a script can
+    pass values the panel's limits would stop) is named as the panel labels it, without core's
+    dump of its parameters."""
+    obj, _ = _setup(bl, tmp_path)
+    for option, words in (({"tolerance_deg": 0.0}, "Angle tolerance (degrees) must be > 0"),
+                          ({"search_steps": 40}, "Search steps must be in 0..30")):
+        with pytest.raises(bl.report.ExportError) as err:
+            bl.operators.checked_params(obj, option)
+        assert str(err.value) == f"SurfSphere: the bake settings are refused: {words}"
+
+
 def test_degenerate_object_refused(bl, tmp_path):
     """A NURBS surface whose control points all coincide (away from the origin), or lie on one
     line (scaled to zero in two axes, or edited so), is refused by Bake, Estimate and F12 before
