@@ -3,10 +3,10 @@ install the finished cache. Everything here is called from Blender's main thread
 operator's timer, a bpy.app.timers function or a blocking loop); the work itself runs in the
 worker process, so the UI never freezes.
 
-Files: a private job folder (tempfile) for job.json / scene.json / progress / result / log; the
-cache is written by the worker to ``<cache>.tmp<pid>`` beside the final path and moved into place
-with os.replace only when the bake finished, so a cancelled or failed bake keeps any previous
-cache untouched.
+Files: a private job folder (tempfile, removed when the job ends, however it ends) for
+job.json / scene.json / progress / result / log; the cache is written by the worker to
+``<cache>.tmp<pid>`` beside the final path and moved into place with os.replace only when the
+bake finished, so a cancelled or failed bake keeps any previous cache untouched.
 """
 
 from __future__ import annotations
@@ -164,8 +164,7 @@ class BakeJob:
                 os.remove(self.tmp_output)
             except OSError:
                 pass
-        if state != "failed":
-            shutil.rmtree(self.job_dir, ignore_errors=True)
+        shutil.rmtree(self.job_dir, ignore_errors=True)   # a failure's traceback is read already
 
     def _read_json(self, name: str) -> dict | None:
         try:

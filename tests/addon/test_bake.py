@@ -348,3 +348,5 @@ def test_bake_failure_reads_as_the_panel_speaks(bl, tmp_path):
     assert msg == ("Error: bake of SurfSphere failed: camera 'Camera (frame 1)' does not see the "
                    "object 'SurfSphere' (none of its 16 x 16 pixel rays reaches the object's "
                    "bounding box); nothing to bake"), msg
+    job = bl.jobs.JOBS[obj.name]
+    assert "Traceback" in job.traceback and not os.path.exists(job.job_dir)
