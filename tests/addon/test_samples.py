@@ -196,7 +196,8 @@ def test_headless_bad_input(extension_zip, bowl_blend, tmp_path, args, message):
     assert last.startswith("headless_render.py: error: ") and message in last, res.stderr
 
 
-@pytest.mark.parametrize("script", ["blender_bench.py", "animation_bench.py", "factory_bench.py"])
+@pytest.mark.parametrize("script", ["blender_bench.py", "animation_bench.py", "factory_bench.py",
+                                    "suzanne_bench.py"])
 def test_bench_scripts_start(script, tmp_path):
     """The Blender benchmark scripts import what they use (every import runs before --help)
     and answer --help."""
