@@ -35,10 +35,10 @@ from riray.scene.model import ObjectMaterial, Patch, RenderSettings, Scene, Spec
 
 
 def paper(**kw) -> QueryOptions:
-    """The paper's rules (no baked-error tolerance, mirror rays blended) with options
-    ``kw``."""
+    """The paper's rules (no baked-error tolerance, mirror rays blended), refused rays traced
+    (not solved along a path), with options ``kw``."""
     return QueryOptions(**{"max_error_deg": None, "mirror_rays": "interpolate",
-                            "many_classes": "trace", **kw})
+                            "many_classes": "trace", "solve_paths": False, **kw})
 
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
