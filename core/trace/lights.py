@@ -72,6 +72,16 @@ def cosine_directions(n: np.ndarray, side: int, offsets: np.ndarray) -> np.ndarr
     return tx[:, :, None] * x + bx[:, :, None] * y + n[:, :, None] * z
 
 
+def sphere_directions(n: int) -> np.ndarray:
+    """(n, 3) unit directions spread evenly over the sphere (a Fibonacci lattice: equal-area
+    bands, golden-angle turns)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
 def lobe_directions(r: np.ndarray, shininess: float, side: int,
                     offsets: np.ndarray) -> np.ndarray:
     """(3, k, side^2) unit directions about the mirror directions ``r`` (3, k), distributed as

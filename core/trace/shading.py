@@ -35,7 +35,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..scene.model import Light, ObjectMaterial, Scene
-from .lights import AreaLight, cosine_directions, lobe_directions, point_offsets
+from .lights import (AreaLight, cosine_directions, lobe_directions, point_offsets,
+                     sphere_directions)
 from .meshes import MeshSet, RayHits
 from .nodes import ShadingPoints, evaluate
 from .textures import eval_texture, eval_world
@@ -52,6 +53,13 @@ SHADE_CHUNK = 8192      # rays shaded at once: bounds the per-chunk arrays (~L2 
 # are many orders below it (the sun's disc is ~2e7 W/m^2/sr).
 MAX_RADIANCE = 1e20
 SKY_SIDE = 4            # the sky term: SKY_SIDE^2 stratified cosine-weighted occlusion rays
+# The sky term is cast only where the world can be seen at all: SKY_PROBE_SIDE^3 points at the
+# cell centres of a grid over the environment's box each look along SKY_PROBE_DIRS directions
+# spread over the sphere; where none of those rays leaves the environment (a closed room) the
+# term is off: a point could then see the world only through an opening narrower than the
+# probes resolve (below about 1/SKY_PROBE_DIRS of the sphere), whose light is that small.
+SKY_PROBE_SIDE = 8
+SKY_PROBE_DIRS = 64
 AREA_SIDE = 4           # an area light: AREA_SIDE^2 stratified shadow rays to points on it
 GLOSSY_SIDE = 3         # a rough metal: GLOSSY_SIDE^2 stratified reflection rays in its lobe
 ROUGH_SHARP = 0.1       # Blender roughness up to which a metal reflects as a mirror (its lobe,
@@ -108,17 +116,34 @@ class Environment:
                            for m in self._materials)
         w = self.world
         dark = w.strength == 0 or (w.kind == "color" and max(w.color) == 0)
-        self.sky = bool(w.sky) and not dark     # the sky term is on (a black world: off)
         pts = [self.meshes.vertices] + ([self.occluder.vertices] if self.occluder else [])
         pts = np.concatenate(pts)
         diag = float(np.linalg.norm(pts.max(0) - pts.min(0))) if len(pts) else 0.0
         self.offset = SHADOW_OFFSET * max(diag, 1.0)
+        # the sky term is on (off for a black world, or one no probe ray reaches)
+        self.sky = bool(w.sky) and not dark and self._world_reachable()
         self.stats = {"env_rays": 0, "shadow_rays": 0}
         for light in self.lights:             # built here, before a render forks its workers
             if light.kind == "point" and light.shadows:
                 for ms in (self.meshes, self.occluder):
                     if ms is not None:
                         ms.prepare_apex(light.position, APEX_PAD * self.offset)
+
+    def _world_reachable(self) -> bool:
+        """Whether any of SKY_PROBE_SIDE^3 points spread through the environment's box sees
+        the world along one of SKY_PROBE_DIRS directions from beyond the shadow offset (a probe
+        on a floor plane sees past it; no environment: yes)."""
+        v = self.meshes.vertices
+        if len(v) == 0:
+            return True
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        f = (np.arange(SKY_PROBE_SIDE) + 0.5) / SKY_PROBE_SIDE
+        grid = np.stack(np.meshgrid(f, f, f, indexing="ij"), axis=-1).reshape(-1, 3)
+        points = lo + grid * (hi - lo)
+        dirs = sphere_directions(SKY_PROBE_DIRS)
+        o = np.repeat(points, len(dirs), axis=0)
+        d = np.tile(dirs, (len(points), 1))
+        return not bool(np.all(self.meshes.any_hit(o, d, np.full(len(o), self.offset))))
 
     def closest(self, origins, dirs, tmin=None, tmax=None) -> RayHits:
         """The closest environment hit of each ray in [tmin, tmax] (defaults 0, inf), a hit

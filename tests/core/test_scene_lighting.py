@@ -61,6 +61,40 @@ def test_sky_is_off_unless_the_world_lights_the_scene():
     assert np.allclose(env.shade_rays(o, d), 0.0)
 
 
+def box_room(half, height, ceiling=True):
+    """A room's floor, four walls and (optionally) ceiling: quads, 2 half wide, ``height``."""
+    h, z = half, height
+    walls = {"floor": [[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]],
+             "north": [[-h, h, 0], [h, h, 0], [h, h, z], [-h, h, z]],
+             "south": [[-h, -h, 0], [h, -h, 0], [h, -h, z], [-h, -h, z]],
+             "east": [[h, -h, 0], [h, h, 0], [h, h, z], [h, -h, z]],
+             "west": [[-h, -h, 0], [-h, h, 0], [-h, h, z], [-h, -h, z]],
+             "ceiling": [[-h, -h, z], [h, -h, z], [h, h, z], [-h, h, z]]}
+    if not ceiling:
+        del walls["ceiling"]
+    return [Mesh(k, np.array(v, float), FACES.copy(), "floor") for k, v in walls.items()]
+
+
+def test_a_closed_room_casts_no_sky_rays_an_open_one_does():
+    """In a closed room no sky ray can leave, so the term is off (no occlusion rays cast) and
+    the floor is as dark as with the term on; without its ceiling the floor's centre sees the
+    open square overhead: pi L times the form factor of a square of side 2 at height 1."""
+    world = World(color=tuple(SKY), sky=True)
+    closed = Environment(scene([], meshes=box_room(1.0, 1.0), world=world))
+    assert not closed.sky
+    o, d = np.array([[0.0, 0.0, 0.5]]), np.array([[0.0, 0.0, -1.0]])
+    assert np.allclose(closed.shade_rays(o, d), 0.0)
+    p, n = np.zeros((3, 1)), np.array([[0.0], [0.0], [1.0]])
+    assert np.allclose(closed.sky_irradiance(p, n, n, None), 0.0)
+    open_top = Environment(scene([], meshes=box_room(1.0, 1.0, ceiling=False), world=world))
+    assert open_top.sky
+    ring = np.array([[0.0, 0.0], [0.01, 0.0], [0.0, 0.01], [-0.01, 0.0], [0.0, -0.01]])
+    pts = np.column_stack([ring, np.zeros(len(ring))]).T.copy()
+    nrm = np.tile([[0.0], [0.0], [1.0]], (1, len(ring)))
+    e = open_top.sky_irradiance(pts, nrm, nrm, None).mean(axis=1)
+    assert np.allclose(e, np.pi * SKY * 4 * corner_form_factor(1.0, 1.0), rtol=0.1)
+
+
 def test_sky_under_a_roof_is_the_open_share_of_the_cosine():
     """A point under an infinite-ish roof at height h with a hole of radius r straight above
     sees the sky through the hole only: irradiance pi L sin^2 = pi L r^2 / (r^2 + h^2) in the
