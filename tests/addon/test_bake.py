@@ -350,3 +350,28 @@ def test_bake_failure_reads_as_the_panel_speaks(bl, tmp_path):
                    "bounding box); nothing to bake"), msg
     job = bl.jobs.JOBS[obj.name]
     assert "Traceback" in job.traceback and not os.path.exists(job.job_dir)
+
+
+def test_an_animation_bake_covers_each_camera_position_once(bl):
+    """Bake for scene cameras with Frame range on: every frame of the range is visited and a
+    camera position is kept once however many frames hold it (a move over frames 1-4, then
+    still to frame 40: four positions; every second frame with a frame step of 2)."""
+    bpy = bl.bpy
+    scene = bpy.context.scene
+    bpy.ops.object.camera_add(location=(0, -4, 0.5), rotation=(math.radians(85), 0, 0))
+    cam = bpy.context.active_object
+    scene.camera = cam
+    cam.keyframe_insert("location", frame=1)
+    cam.location.x = 1.5
+    cam.keyframe_insert("location", frame=4)
+    scene.frame_start, scene.frame_end, scene.frame_current = 1, 40, 7
+    report = bl.report.Report()
+    views = bl.operators.camera_views(bpy.context, {"use_frame_range": True}, report)
+    xs = [round(float(v.matrix_world[0][3]), 6) for v in views]
+    assert len(views) == 4 and len(set(xs)) == 4 and xs[0] == 0.0 and xs[-1] == 1.5
+    assert scene.frame_current == 7                       # the current frame is left as it was
+    scene.frame_step = 2
+    views = bl.operators.camera_views(bpy.context, {"use_frame_range": True}, report)
+    assert len(views) == 3                                # frames 1, 3 and 5 onwards
+    one = bl.operators.camera_views(bpy.context, {"use_frame_range": False}, report)
+    assert len(one) == 1 and round(float(one[0].matrix_world[0][3]), 6) == 1.5
