@@ -204,8 +204,9 @@ def eevee_frame(scene, name, view, tmp: Path, images, log) -> list:
 
 def riray_frames(core, view, size, args, tmp: Path, images, log) -> list:
     """riray on the very same core scene: the exact frame, then the frame through a tree baked
-    for the view at the ``args.quality`` preset, with its stage CPU seconds and its frame again
-    by ``riray render`` in a fresh process (wall s, peak RSS MiB)."""
+    for the view at the ``args.quality`` preset, with the CPU seconds of its stages and of the
+    query's steps within the object stage, and its frame again by ``riray render`` in a fresh
+    process (wall s, peak RSS MiB)."""
     w, h = size
     shot = Shot(camera=view, width=w, height=h)
     t0 = time.perf_counter()
@@ -222,7 +223,7 @@ def riray_frames(core, view, size, args, tmp: Path, images, log) -> list:
     images["riray_interpolated"] = it.image
     s = it.stats["summary"]
     stages = {k: v for k, v in it.stats["interp_counts"].items()
-              if k.startswith("stage_") and k.endswith("_cpu_s")}
+              if k.startswith(("stage_", "query_")) and k.endswith("_cpu_s")}
     cli = cli_tree_frame(core, view, size, brec["tree_path"], args.workers, tmp)
     interp = {"renderer": "riray", "label": "riray_interpolated", "quality": args.quality,
               "frame_s": s["wall_s"], "frame_cpu_s": s["interp_total_cpu_s"],
@@ -319,8 +320,23 @@ def stage_table(rows) -> str:
     return "\n".join(lines)
 
 
+def query_table(rows) -> str:
+    """The tree frame's object stage per scene: CPU seconds of each step of the query (summed
+    over the workers; first hits, trace, newton and paths are its exact work)."""
+    tree = [r for r in rows if r["label"] == "riray_interpolated"]
+    steps = list(dict.fromkeys(k for r in tree for k in r if k.startswith("query_")
+                               and k.endswith("_cpu_s") and k != "query_own_cpu_s"))
+    names = [k[len("query_"):-len("_cpu_s")].replace("_", " ") for k in steps]
+    lines = ["| scene | size | object CPU s | " + " | ".join(names) + " |",
+             "|---|---|" + "---:|" * (len(steps) + 1)]
+    for r in tree:
+        cells = [_cell(r.get(k), "{:.2f}") for k in ("stage_object_cpu_s", *steps)]
+        lines.append(f"| {r['scene']} | {r['size']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def markdown(rows) -> str:
-    return side_by_side(rows) + "\n\n" + stage_table(rows)
+    return side_by_side(rows) + "\n\n" + stage_table(rows) + "\n\n" + query_table(rows)
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -401,7 +417,8 @@ def main(argv=None) -> int:
     res = {"machine": machine(), "blender": bpy.app.version_string,
            "command": command_line(args), "elapsed_s": time.perf_counter() - t0, "rows": rows}
     (out / "blender.json").write_text(json.dumps(json_safe(res), indent=1) + "\n")
-    stages = list(dict.fromkeys(k for r in rows for k in r if k.startswith("stage_")))
+    stages = list(dict.fromkeys(k for r in rows for k in r
+                                if k.startswith(("stage_", "query_")) and k not in COLS))
     with open(out / "blender.csv", "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow((*COLS, *stages))
