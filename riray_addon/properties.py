@@ -90,8 +90,9 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                ("FAST", "Fast", "About a minute for a sample scene's three cameras on two "
                                 "cores: about a third of Default's bake time, under half its "
                                 "cache, more rays traced at render time", 1),
-               ("DEFAULT", "Default", "The paper's tree, the command line's default: the "
-                                      "fewest rays traced at render time", 2),
+               ("DEFAULT", "Default", "The finest preset and the command line's default: "
+                                      "the longest bake and biggest cache, the fewest rays "
+                                      "traced at render time", 2),
                ("CUSTOM", "Custom", "The depths and tolerance as set under Advanced", 3)],
         default="DEFAULT", update=_apply_quality,
         description="How fine a tree to bake. Finer trees take longer and use more disk and "
@@ -156,17 +157,18 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
     # ---- render-time interpolation rules (core QueryOptions; no re-bake needed)
     policy: EnumProperty(
         name="Policy",
-        items=[("RI", "Ray interpolants", "Interpolate rays that pass the rules below (the "
-                                          "paper's method)"),
-               ("RAYTREE", "Ray tree", "Bala et al.'s older rule: interpolate only where the "
-                                       "nearby samples bounce off the same surfaces")],
+        items=[("RI", "Ray interpolants", "Interpolate every ray that passes the rules below: "
+                                          "the fewest rays traced, the fastest renders"),
+               ("RAYTREE", "Same surfaces", "Interpolate only where the nearby samples bounce "
+                                            "off the same surfaces in the same order: more "
+                                            "rays traced, slower renders")],
         default=QUERY.policy.upper(),
         description="Which rule decides whether a ray is interpolated or traced")
     use_angle_threshold: BoolProperty(name="Angle threshold", default=QUERY.angle_deg is not None,
                                       description="Trace a ray whose nearby samples leave the "
                                                   "object further apart than the angle below. "
-                                                  "Max error is the better rule; this one is "
-                                                  "the paper's")
+                                                  "Max error keeps the same accuracy with "
+                                                  "fewer rays traced")
     angle_deg: FloatProperty(name="Angle (degrees)", default=20.0, min=0.0, max=180.0,
                              options={"HIDDEN"}, description="Saved value of Angle, in degrees")
     angle: _shown_as("angle_deg", DEG, name="Angle", min=0.0, max=180.0 * DEG, precision=2,
@@ -177,7 +179,7 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
                                          default=QUERY.distance is not None,
                                          description="Trace a ray whose nearby samples leave the "
                                                      "object further apart than the distance "
-                                                     "below")
+                                                     "below: more accurate, more rays traced")
     distance: FloatProperty(name="Distance (fraction)", default=0.05, min=0.0, max=1.0,
                             precision=4, options={"HIDDEN"},
                             description="Saved value of Distance, a fraction of the object's "
@@ -195,7 +197,8 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
     extrapolation: FloatProperty(name="Extrapolation", default=0.1, min=0.0, max=1.0,
                                  subtype="FACTOR",
                                  description="How far outside the nearby samples a ray may "
-                                             "lie, as a share of their spacing")
+                                             "lie, as a share of their spacing. More: fewer "
+                                             "rays traced, less accurate at edges")
     use_null_interp: BoolProperty(name="Interpolate null rays", default=QUERY.null_interp,
                                   description="Answer a ray as trapped inside the object when "
                                               "all its nearby samples are, instead of tracing "
@@ -204,8 +207,10 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
     use_max_error: BoolProperty(name="Max error", default=QUERY.max_error_deg is not None,
                                 description="Interpolate a ray only where the bake measured "
                                             "errors within the angle below around it; trace it "
-                                            "elsewhere. A tree baked without the scene cameras "
-                                            "uses the angle threshold instead (20° unless set)")
+                                            "elsewhere: fewer rays traced than by the angle "
+                                            "threshold at the same accuracy. A tree baked "
+                                            "without the scene cameras uses the angle threshold "
+                                            "instead (20° unless set)")
     max_error_deg: FloatProperty(name="Max error (degrees)", default=DEFAULT_MAX_ERROR_DEG,
                                  min=0.0, max=180.0, precision=3, options={"HIDDEN"},
                                  description="Saved value of Max error, in degrees")
@@ -243,7 +248,8 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
         items=[("FIRST_HIT", "First hit", "Take the class of the ray's exact first hit "
                                           "(a ray that misses the object is answered "
                                           "exactly). Fewer rays traced"),
-               ("TRACE", "Trace", "Trace the ray (the paper's rule)")],
+               ("TRACE", "Trace", "Trace the ray: exact, more rays traced, slower "
+                                  "renders")],
         default=QUERY.many_classes.upper(),
         description="A ray whose nearby samples first hit more than two equivalence "
                     "classes (see Equivalence Classes): take the class of its exact first "
@@ -317,16 +323,18 @@ class RIRAY_PG_scene(bpy.types.PropertyGroup):
                                 description="Trace the object exactly when it has no RI-Tree or "
                                             "the tree is stale (else the render fails)")
     samples: IntProperty(name="Samples", default=Shot.samples, min=1, max=4096, soft_max=64,
-                         description="Camera rays per pixel: 1 is the pixel centre; more are "
-                                     "stratified in the pixel and filtered (Blackman-Harris, "
-                                     "1.5 px) for anti-aliasing")
+                         description="Camera rays per pixel: 1 is the pixel centre; more "
+                                     "smooth the edges (anti-aliasing), the render time "
+                                     "grows with the count")
     render_processes: IntProperty(name="Processes", default=0, min=0, max=256,
                                   description="Worker processes for RI-Tree Preview renders "
                                               "(0: automatic - every core on Linux, one "
                                               "elsewhere, where forking Blender is unsafe)")
     max_events: IntProperty(name="Max events", default=RenderSettings.max_events, min=1, max=64,
-                            description="Reflections/refractions followed before a ray becomes "
-                                        "the null ray")
+                            description="Reflections and refractions followed through the "
+                                        "object before a ray is given up (black). More: "
+                                        "longer light paths inside the glass, slower "
+                                        "bakes and renders")
 
 
 # The add-on's id in Blender's preferences: the extension package (this package's parent).

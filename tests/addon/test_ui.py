@@ -3,6 +3,7 @@ into): every property it shows exists, the states (not baked / up to date / stal
 draw, and the status bar shows a running bake with its progress and cancel button."""
 
 import math
+import re
 import time
 
 import pytest
@@ -148,6 +149,37 @@ def test_panel_fields_have_units(bl):
     p.distance_percent = 7.5
     assert p.distance == pytest.approx(0.075)
     assert p.tolerance_dist_percent == pytest.approx(100 * p.tolerance_dist)
+
+
+# Words by which a tooltip says what a setting costs or saves.
+TRADE_WORDS = ("time", "cache", "traced", "slower", "faster", "longer", "shorter", "cost")
+
+
+def _tooltips(prop):
+    """The tooltip of a property and of each of its menu items."""
+    items = [i.description for i in prop.enum_items] if prop.type == "ENUM" else []
+    return [prop.description] + items
+
+
+def test_tooltips_speak_plainly_and_name_the_trade(bl):
+    """Every setting of the add-on's panels has a tooltip in plain words (no paper, section
+    numbers, authors or internal names), and each bake and render-time setting says what it
+    trades: bake or render time, cache size, rays traced."""
+    bpy = bl.bpy
+    bpy.ops.surface.primitive_nurbs_surface_sphere_add()
+    obj = bpy.context.active_object
+    groups = (obj.riray, bpy.context.scene.riray, bpy.context.view_layer.riray)
+    plain = re.compile(r"paper|Bala|hash|\d+\.\d+\)|\b[a-z]+_[a-z_]+\b", re.IGNORECASE)
+    for group in groups:
+        for key, prop in group.bl_rna.properties.items():
+            if key in ("rna_type", "name") or prop.is_hidden or prop.type == "COLLECTION":
+                continue
+            for text in _tooltips(prop):
+                assert text and not plain.search(text), (key, text)
+    props = obj.riray.bl_rna.properties
+    for key in ["quality"] + ADVANCED + RULES + ["bake_for_cameras", "use_frame_range"]:
+        text = " ".join(_tooltips(props[key])).lower()
+        assert any(w in text for w in TRADE_WORDS), (key, text)
 
 
 def test_spline_list_rows(bl):
