@@ -45,14 +45,36 @@ def target_object(context, name: str = ""):
     return obj
 
 
+def _animated(idb) -> bool:
+    """Whether keys or drivers can change ``idb`` (an object or its data) from frame to frame."""
+    ad = getattr(idb, "animation_data", None)
+    return ad is not None and (ad.action is not None or len(ad.drivers) > 0
+                               or len(ad.nla_tracks) > 0)
+
+
+def camera_moves(cam) -> bool:
+    """Whether the camera object may stand or look elsewhere on another frame: it, its camera
+    data or a parent is animated or constrained, or it hangs from a vertex or bone (whose
+    object may deform)."""
+    obj = cam
+    while obj is not None:
+        if _animated(obj) or _animated(obj.data) or len(obj.constraints) > 0:
+            return True
+        if obj.parent is not None and obj.parent_type != "OBJECT":
+            return True
+        obj = obj.parent
+    return False
+
+
 def camera_views(context, params: dict, report: Report) -> list:
     """Core cameras for every scene camera at every frame of the range (or the current frame),
     named "<camera> (frame <frame>)", as messages show them: what a camera-driven bake must
-    cover."""
+    cover. Only when a camera moves are the frames visited: changing frames evaluates the
+    whole scene (its heavy, animated environment too) on Blender's main thread."""
     scene = context.scene
     cams = [o for o in scene.objects if o.type == "CAMERA"]
     frames = [scene.frame_current]
-    if params.get("use_frame_range"):
+    if params.get("use_frame_range") and any(camera_moves(c) for c in cams):
         frames = list(range(scene.frame_start, scene.frame_end + 1, max(1, scene.frame_step)))
     out, keep, seen = [], scene.frame_current, set()
     try:
@@ -357,7 +379,7 @@ class RIRAY_OT_bake_clear(bpy.types.Operator):
 
 
 class RIRAY_OT_bake_estimate(bpy.types.Operator):
-    """Estimate bake time and cache size (traces a few hundred rays to measure the object)"""
+    """Estimate bake time and cache size (traces a few thousand rays through the object)"""
     bl_idname = "riray.bake_estimate"
     bl_label = "Estimate"
 

@@ -375,3 +375,36 @@ def test_an_animation_bake_covers_each_camera_position_once(bl):
     assert len(views) == 3                                # frames 1, 3 and 5 onwards
     one = bl.operators.camera_views(bpy.context, {"use_frame_range": False}, report)
     assert len(one) == 1 and round(float(one[0].matrix_world[0][3]), 6) == 1.5
+
+
+def test_bake_preparation_skips_the_environment_and_still_frames(bl, tmp_path):
+    """What the operator does on Blender's main thread before the worker starts stays small
+    however heavy the scene: the environment (here a mesh whose modifier changes every frame)
+    is not exported, and with Frame range on the frames are visited only when a camera moves
+    (each frame change evaluates the whole scene). A keyed camera is still followed."""
+    bpy = bl.bpy
+    obj, _ = _setup(bl, tmp_path)
+    bpy.ops.mesh.primitive_uv_sphere_add(radius=8)
+    bpy.context.active_object.modifiers.new("wave", "WAVE")
+    bpy.context.view_layer.objects.active = obj
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 30
+    visited = []
+
+    def count(sc, *_args):
+        visited.append(sc.frame_current)
+    bpy.app.handlers.frame_change_pre.append(count)
+    try:
+        core_scene, params, _ = bl.operators.prepare_bake(bpy.context, obj, bl.report.Report())
+        assert params["use_frame_range"] and visited == []
+        assert core_scene.meshes == [] and len(core_scene.cameras) == 1
+        cam = scene.camera
+        cam.keyframe_insert("location", frame=1)
+        cam.location.x += 1.0
+        cam.keyframe_insert("location", frame=30)
+        scene.frame_set(15)
+        visited.clear()
+        core_scene, _, _ = bl.operators.prepare_bake(bpy.context, obj, bl.report.Report())
+        assert set(visited) == set(range(1, 31)) and len(core_scene.cameras) == 30
+    finally:
+        bpy.app.handlers.frame_change_pre.remove(count)
