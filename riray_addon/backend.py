@@ -35,19 +35,22 @@ from ..core.ritree.region import region_for_cameras
 
 BACKEND = "ritree"
 CALIBRATION_RAYS = 2048         # rays traced to measure this object's cost per ray (estimate)
-# Estimate model for camera bakes, fit to the Draft / Fast / Default bakes of glass_sphere and
-# vase_mirror (docs/blender.md, "How good the estimate is"): the direction trees are the
-# cameras' trees at the first viewpoint level plus this share of those the finest level adds,
-# each with a typical sample count; a sample costs a few traced rays (extra samples where two
-# surfaces meet), and each pass checks the tree on the cameras' rays; the whole bake (saving
-# included) takes a fixed multiple of those rays at the calibrated cost. Glass samples follow
-# longer, more varied paths than mirror ones: more bytes.
-EST_REFINE_SHARE = 0.4
-EST_SAMPLES_PER_TREE = 58
-EST_RAYS_PER_SAMPLE = 1.5
-EST_CHECK_RAYS = 0.75           # ray costs per camera ray and pass
+CALIBRATION_RUNS = 3            # timed runs of them; the median counts (the machine is shared)
+# Estimate model for camera bakes, fit to Draft / Fast / Default bakes of a glass NURBS sphere
+# seen by one camera at 1920 x 1080 (docs/blender.md, "How good the estimate is"). The
+# viewpoints baked are the first level's plus a share of what each finer level adds (the
+# refinement passes split only some cells), each with a typical sample count. The time is the
+# worker's start, the cameras' region (computed by the estimate itself, timed), the bake (a
+# sample costs about a ray and each pass checks the tree on the cameras' rays at a fraction of
+# a ray each), and compressing the cache; the size a fixed part plus bytes per sample.
+EST_LEVEL_SHARE = (0.8, 0.3)    # share of the viewpoints the 2nd, 3rd... level adds (last repeats)
+EST_SAMPLES_PER_VIEWPOINT = 52
+EST_RAYS_PER_SAMPLE = 1.25      # ray costs per sample (extra samples where surfaces meet)
+EST_CHECK_RAYS = 0.14           # ray costs per camera ray and pass
+EST_START_S = 2.0               # worker start, imports, scene read
+EST_SAVE_S_PER_BYTE = 1.0e-6    # compressing and writing the cache
+EST_BYTES_FIXED = 47e3
 EST_BYTES_PER_SAMPLE = {"glass": 9.5, "mirror": 7.5}
-EST_TIME_PER_RAY = 0.9          # bake seconds per ray, in calibrated ray costs
 
 
 class BakeCancelled(Exception):
@@ -120,34 +123,56 @@ def load_tree(path: str):
 
 
 def estimate_bake(scene, params: dict) -> dict:
-    """Bake time (s) and cache size (bytes) before baking: the direction trees the cameras need
-    (or every tree, without cameras) times a typical sample count, at the measured cost of one
-    ray through this object."""
+    """Bake time (s) and cache size (bytes) before baking: the viewpoints the cameras need (or
+    every one, without cameras) times a typical sample count, at the measured cost of one ray
+    through this object, plus the cameras' region as long as it takes here."""
     st = SceneTracer(scene)
     bp = bake_params(params)
+    per_ray = _cost_per_ray(st)
+    kind = "mirror" if scene.object.material.kind == "mirror" else "glass"
+    region_s, checks = 0.0, 0.0
+    if params.get("bake_for_cameras", True) and scene.cameras:
+        t0 = time.perf_counter()
+        region = region_for_cameras(st, bp, scene.cameras, int(params["width"]),
+                                    int(params["height"]))
+        region_s = time.perf_counter() - t0
+        viewpoints = _viewpoints(region)
+        checks = EST_CHECK_RAYS * len(region.rays[0]) * (1 + bp.viewpoint_refine)
+    else:
+        viewpoints = 6 * (2 ** bp.viewpoint_depth + 1) ** 2 * 3
+    samples = viewpoints * EST_SAMPLES_PER_VIEWPOINT
+    rays = int(samples * EST_RAYS_PER_SAMPLE)
+    size = EST_BYTES_FIXED + samples * EST_BYTES_PER_SAMPLE[kind]
+    bake_s = (rays + checks) * per_ray
+    return {"time_s": EST_START_S + region_s + bake_s + size * EST_SAVE_S_PER_BYTE,
+            "bytes": float(size), "rays": rays, "per_ray_s": per_ray, "kind": kind,
+            "region_s": region_s}
+
+
+def _cost_per_ray(st) -> float:
+    """Seconds one ray through the object takes here: the median of CALIBRATION_RUNS runs of
+    CALIBRATION_RAYS rays from around its box towards it."""
     rng = np.random.default_rng(1)
     c = 0.5 * (st.tracer.lo + st.tracer.hi)
     r = 0.5 * max(st.tracer.diag, 1e-9)
     o = c + 1.5 * r * _unit(rng.normal(size=(CALIBRATION_RAYS, 3)))
     d = _unit(c + 0.5 * r * rng.uniform(-1, 1, (CALIBRATION_RAYS, 3)) - o)
-    t0 = time.perf_counter()
-    st.object_function(o, d)
-    per_ray = (time.perf_counter() - t0) / CALIBRATION_RAYS
-    kind = "mirror" if scene.object.material.kind == "mirror" else "glass"
-    if params.get("bake_for_cameras", True) and scene.cameras:
-        region = region_for_cameras(st, bp, scene.cameras, int(params["width"]),
-                                    int(params["height"]))
-        first = len(region.levels[min(region.levels)][0])
-        finest = len(region.levels[max(region.levels)][0])
-        trees = first + EST_REFINE_SHARE * (finest - first)
-        checks = EST_CHECK_RAYS * len(region.rays[0]) * (1 + bp.viewpoint_refine)
-    else:
-        trees, checks = 6 * (2 ** bp.viewpoint_depth + 1) ** 2 * 3, 0.0
-    samples = trees * EST_SAMPLES_PER_TREE
-    rays = int(samples * EST_RAYS_PER_SAMPLE)
-    return {"time_s": (rays + checks) * per_ray * EST_TIME_PER_RAY,
-            "bytes": float(samples * EST_BYTES_PER_SAMPLE[kind]), "rays": rays,
-            "per_ray_s": per_ray, "kind": kind}
+    runs = []
+    for _ in range(CALIBRATION_RUNS):
+        t0 = time.perf_counter()
+        st.object_function(o, d)
+        runs.append((time.perf_counter() - t0) / CALIBRATION_RAYS)
+    return float(np.median(runs))
+
+
+def _viewpoints(region) -> float:
+    """Viewpoints a camera bake is expected to hold: the region's first level, then a share of
+    what each finer level adds (EST_LEVEL_SHARE)."""
+    counts = [len(region.levels[lv][0]) for lv in sorted(region.levels)]
+    total = float(counts[0])
+    for i, (coarse, fine) in enumerate(zip(counts, counts[1:])):
+        total += EST_LEVEL_SHARE[min(i, len(EST_LEVEL_SHARE) - 1)] * (fine - coarse)
+    return total
 
 
 def _unit(v):
