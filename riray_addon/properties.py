@@ -301,9 +301,10 @@ class RIRAY_PG_material(bpy.types.PropertyGroup):
 
 
 class RIRAY_PG_world(bpy.types.PropertyGroup):
-    ambient: FloatProperty(name="Ambient", default=0.0, min=0.0, soft_max=10.0,
-                           description="Constant ambient irradiance (W/m^2) added to the lights "
-                                       "for the environment's diffuse surfaces")
+    ambient: FloatProperty(name="Ambient (W/m²)", default=0.0, min=0.0, soft_max=10.0,
+                           description="Constant ambient irradiance added to the lights for "
+                                       "the environment's diffuse surfaces, in watts per "
+                                       "square metre")
 
 
 class RIRAY_PG_view_layer(bpy.types.PropertyGroup):

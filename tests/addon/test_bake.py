@@ -115,6 +115,25 @@ def test_draft_estimate_within_30_percent(bl, tmp_path):
     assert 0.7 * size <= est["bytes"] <= 1.3 * size, (est["bytes"], size)
 
 
+def test_draft_estimate_of_one_camera_within_30_percent(bl, tmp_path):
+    """The same for a glass NURBS sphere seen by one camera at the factory render size (the
+    estimate table's scene in docs/blender.md): what the operator hands the worker, baked."""
+    bpy = bl.bpy
+    obj, _ = _setup(bl, tmp_path)
+    mat = bl.compat.new_material("Glass")
+    nodes = mat.node_tree.nodes
+    glass = nodes.new("ShaderNodeBsdfGlass")
+    mat.node_tree.links.new(glass.outputs[0], nodes["Material Output"].inputs["Surface"])
+    obj.data.materials.append(mat)
+    obj.riray.quality = "DRAFT"
+    scene, params, _ = bl.operators.prepare_bake(bpy.context, obj, bl.report.Report())
+    est = bl.backend.estimate_bake(scene, params)
+    tree = bl.backend.bake_tree(scene, params, lambda *a: None, lambda: False)
+    size = bl.backend.save_tree(tree, str(tmp_path / "draft.rit"), {})
+    assert est["kind"] == "glass"
+    assert 0.7 * size <= est["bytes"] <= 1.3 * size, (est["bytes"], size)
+
+
 def test_estimate_and_failed_bake(bl, tmp_path):
     bpy = bl.bpy
     obj, _ = _setup(bl, tmp_path)
