@@ -28,8 +28,9 @@ acceleration-structure build and the bake listed apart). The tree frame's stage 
 runs it, ``riray render --tree`` in a fresh process without Blender and Cycles: its wall
 seconds and peak resident memory (RSS, MiB, the largest of the process and its workers).
 
-Writes OUT/blender.json, OUT/blender.csv, OUT/blender.md (the side-by-side table and the tree
-frame's stages) and the images (OUT/<scene>_*.png).
+Writes OUT/blender.json, OUT/blender.csv, OUT/blender.md (the side-by-side table, the tree
+frame's stages and the query's steps within its object stage) and the images
+(OUT/<scene>_*.png).
 """
 
 from __future__ import annotations
