@@ -42,11 +42,13 @@ class TreeQuery:
         self.material = st.scene.object.material
         # load-time work, done once (and before any fork, so worker processes share it): a
         # loaded tree's derived hit points and normals, decoded samples and their
-        # perspective-weighted copy, dense leaf tables, answerable-leaf flags
+        # perspective-weighted copy, dense leaf tables, answerable-leaf flags, paths by group
         tree.attach_geometry(st.tracer)
         self.table = tree.table
         tree.blend_vals, tree.vp_locator, tree.dir_locator
         tree.leaf_ok, tree.leaf_sampled, tree.cell_rect
+        if self.material.kind == "mirror" and self.opt.one_path:
+            tree.class_paths         # a mirror's paths by patch group (tolerance.one_path)
         # the path solver's occlusion proxy (query/paths.py)
         self.proxy = st.tracer.occlusion_proxy if self.opt.solve_paths else None
         # a bake that measured no viewpoint cell (a full tree, or one whose every test ray was
