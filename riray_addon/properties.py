@@ -166,9 +166,10 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
         description="Which rule decides whether a ray is interpolated or traced")
     use_angle_threshold: BoolProperty(name="Angle threshold", default=QUERY.angle_deg is not None,
                                       description="Trace a ray whose nearby samples leave the "
-                                                  "object further apart than the angle below. "
-                                                  "Max error keeps the same accuracy with "
-                                                  "fewer rays traced")
+                                                  "object further apart than the angle below: "
+                                                  "more accurate, more rays traced. Max error "
+                                                  "(on by default) reads the errors the bake "
+                                                  "measured instead")
     angle_deg: FloatProperty(name="Angle (degrees)", default=20.0, min=0.0, max=180.0,
                              options={"HIDDEN"}, description="Saved value of Angle, in degrees")
     angle: _shown_as("angle_deg", DEG, name="Angle", min=0.0, max=180.0 * DEG, precision=2,
@@ -207,10 +208,10 @@ class RIRAY_PG_object(bpy.types.PropertyGroup):
     use_max_error: BoolProperty(name="Max error", default=QUERY.max_error_deg is not None,
                                 description="Interpolate a ray only where the bake measured "
                                             "errors within the angle below around it; trace it "
-                                            "elsewhere: fewer rays traced than by the angle "
-                                            "threshold at the same accuracy. A tree baked "
-                                            "without the scene cameras uses the angle threshold "
-                                            "instead (20° unless set)")
+                                            "elsewhere: rays are traced only where the tree "
+                                            "is inaccurate. A tree baked without the scene "
+                                            "cameras uses the angle threshold instead (20° "
+                                            "unless set)")
     max_error_deg: FloatProperty(name="Max error (degrees)", default=DEFAULT_MAX_ERROR_DEG,
                                  min=0.0, max=180.0, precision=3, options={"HIDDEN"},
                                  description="Saved value of Max error, in degrees")
