@@ -112,7 +112,8 @@ def render_to_array(scene, path: Path) -> tuple[np.ndarray, float]:
     scene.render.image_settings.color_depth = "32"
     scene.render.filepath = str(path)
     t0 = time.perf_counter()
-    bpy.ops.render.render(write_still=True)
+    if bpy.ops.render.render(write_still=True) != {"FINISHED"}:
+        raise SystemExit(f"{path.name}: the render did not finish")
     wall = time.perf_counter() - t0
     img = bpy.data.images.load(str(path))
     w, h = img.size

@@ -23,18 +23,17 @@ import argparse
 import importlib
 import importlib.util
 import json
-import math
 import os
 import platform
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import headless_render  # noqa: E402  (sets a private BLENDER_USER_RESOURCES before bpy)
 
+import blender_bench  # noqa: E402
 import bpy  # noqa: E402
 import build_blend  # noqa: E402
 import numpy as np  # noqa: E402
@@ -114,30 +113,13 @@ def build_factory_scene(width: int, height: int):
     return sphere
 
 
-def render_exr(scene, path: Path) -> tuple[np.ndarray, float]:
-    """Render the scene camera to a linear EXR; (RGB float64, top row first; wall seconds)."""
-    scene.render.image_settings.file_format = "OPEN_EXR"
-    scene.render.image_settings.color_depth = "32"
-    scene.render.filepath = str(path)
-    t0 = time.perf_counter()
-    if bpy.ops.render.render(write_still=True) != {"FINISHED"}:
-        raise SystemExit("factory_bench: the render did not finish")
-    wall = time.perf_counter() - t0
-    img = bpy.data.images.load(str(path))
-    w, h = img.size
-    px = np.empty(w * h * img.channels, np.float32)
-    img.pixels.foreach_get(px)
-    bpy.data.images.remove(img)
-    return px.reshape(h, w, -1)[::-1, :, :3].astype(np.float64), wall
-
-
 def render_cycles(scene, spp: int, threads: int, path: Path):
     scene.render.engine = "CYCLES"
     c = scene.cycles
     c.device, c.samples, c.seed = "CPU", spp, SEED
     c.use_adaptive_sampling = c.use_denoising = False
     scene.render.threads_mode, scene.render.threads = "FIXED", threads
-    return render_exr(scene, path)
+    return blender_bench.render_to_array(scene, path)
 
 
 def render_riray(scene, sphere, samples: int, workers: int, path: Path, engine_mod):
@@ -145,7 +127,7 @@ def render_riray(scene, sphere, samples: int, workers: int, path: Path, engine_m
     scene.riray.target = sphere
     scene.riray.samples = samples
     scene.riray.render_processes = workers
-    img, wall = render_exr(scene, path)
+    img, wall = blender_bench.render_to_array(scene, path)
     return img, wall, dict(engine_mod.LAST_RENDER.get("stats", {}))
 
 
