@@ -34,7 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...trace.objectfn import (REFLECT, REFRACT, SECONDARY_T_MIN_REL, TREE_HASH_SEED,
-                               fresnel_dielectric, reflect, refract, tree_hash_step)
+                               fresnel_dielectric, one_reflection_hash, reflect, refract,
+                               tree_hash_step)
 from ...trace.patches import PatchHit
 from ...trace.polish import Seeds, polish_hits
 from ...trace.proxy import GRAZING_SINE
@@ -77,7 +78,8 @@ def solve_paths(q, b) -> None:
 
 
 def _sample_paths(q, b) -> None:
-    """solve_paths along the samples' paths."""
+    """The rays refused for SOLVABLE reasons, solved along their samples' paths (the first
+    part of ``solve_paths``)."""
     rays = np.flatnonzero((b.ans == TRACED) & np.isin(b.why, SOLVABLE))
     if len(rays) == 0 or b.loc is None or b.loc_pc is None:
         return
@@ -137,8 +139,7 @@ def one_reflection(q, b) -> None:
     _answer(q, b, rays[keep], first.take(keep),
             Chains(oo=first.point[keep], od=out[keep], null=np.zeros(n, bool),
                    events=np.ones(n, np.int64),
-                   tree=tree_hash_step(np.full(n, TREE_HASH_SEED, np.uint64), first.patch[keep],
-                                       np.full(n, REFLECT)).astype(np.uint32),
+                   tree=one_reflection_hash(first.patch[keep]),
                    fresnel=np.zeros(n), refl_dir=np.zeros((n, 3))))
 
 
