@@ -20,13 +20,18 @@ from riray.scene import samples
 ROOT = Path(__file__).resolve().parents[2]
 
 
-@pytest.fixture(scope="module")
-def build_blend(blender):
-    spec = importlib.util.spec_from_file_location("riray_build_blend",
-                                                  ROOT / "sample_scenes" / "build_blend.py")
+def _load_script(name: str):
+    """sample_scenes/<name>.py imported as a module (riray_<name>)."""
+    spec = importlib.util.spec_from_file_location(f"riray_{name}",
+                                                  ROOT / "sample_scenes" / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+@pytest.fixture(scope="module")
+def build_blend(blender):
+    return _load_script("build_blend")
 
 
 def _norm(k):
@@ -209,11 +214,7 @@ def test_bench_scripts_start(script, tmp_path):
 
 @pytest.fixture(scope="module")
 def blender_bench(blender):
-    spec = importlib.util.spec_from_file_location("riray_blender_bench",
-                                                  ROOT / "sample_scenes" / "blender_bench.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return _load_script("blender_bench")
 
 
 def test_blender_bench_sizes_and_quality(blender_bench):
