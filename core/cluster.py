@@ -253,7 +253,7 @@ def scene_payload(scene) -> str:
     scene format) and the object's fingerprint, to check what they rebuild."""
     from .scene.io import scene_to_dict
     from .scene.model import Scene
-    return json.dumps({"scene": scene_to_dict(Scene(object=scene.object, render=scene.render)),
+    return json.dumps({"scene": scene_to_dict(Scene(objects=[scene.object], render=scene.render)),
                        "fingerprint": fingerprint(scene.object, scene.render.max_events)})
 
 

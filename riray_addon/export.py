@@ -607,7 +607,7 @@ def export_scene(depsgraph, target, report: Report | None = None, cameras: str =
             names.add(c.name)
             cams.append(export_camera(c.evaluated_get(depsgraph), scene, report))
     w, h = render_size(scene)
-    return Scene(object=obj, meshes=meshes, materials=materials, lights=lights, world=world,
+    return Scene(objects=[obj], meshes=meshes, materials=materials, lights=lights, world=world,
                  cameras=cams, render=RenderSettings(width=w, height=h,
                                                      max_events=int(scene.riray.max_events)),
                  name=scene.name)

@@ -24,7 +24,7 @@ from ..files import atomic_write_text
 from ..scene.camera import Shot, check_image_size
 from ..trace.scene_tracer import SceneTracer, check_camera_outside
 from .film import Film
-from .frame import ExactAnswerer, peak_rss_mib, render_frame
+from .frame import ExactAnswerer, Specular, peak_rss_mib, render_frame
 from ..imageio import write_float_image, write_png
 
 
@@ -36,16 +36,19 @@ class RenderResult:
 
 
 def render_exact(st: SceneTracer, shot: Shot = Shot(), workers=None,
-                 progress=None) -> RenderResult:
+                 progress=None, others: tuple = ()) -> RenderResult:
     """Render ``shot`` of the scene ``st`` traces (SceneTracer) exactly, ``shot.samples`` rays
-    per pixel. masks["object"]: with one sample, the pixels whose ray hit the object (bool);
-    with more, the fraction of each pixel's samples that did (float in [0, 1])."""
+    per pixel; ``others``: the SceneTracers of the scene's other specular objects
+    (scene_tracer.object_tracers). masks["object"]: with one sample, the pixels whose ray hit
+    an object (bool); with more, the fraction of each pixel's samples that did (float in
+    [0, 1])."""
     scene = st.scene
     cam, w, h = shot.resolve(scene)
     check_image_size(w, h)
-    check_camera_outside(st, cam)
+    for s in (st, *others):
+        check_camera_outside(s, cam)
     frame = render_frame(st, Film(cam, w, h, shot.samples), ExactAnswerer(st), workers,
-                         progress)
+                         progress, others=[Specular(s, ExactAnswerer(s)) for s in others])
     stats = frame.stats
     summary = {
         "scene": scene.name, "camera": cam.name, "width": w, "height": h, "mode": "exact",

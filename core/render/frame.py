@@ -1,5 +1,6 @@
 """One frame pipeline for every renderer: camera rays -> environment hit and box entry -> the
-object (through the RI-Tree or exactly) -> shading -> film.
+specular objects (each through its RI-Tree or exactly; the nearest hit wins) -> shading (what
+the rays leaving an object meet: the environment or another object) -> film.
 
 A frame is cut into *shares* (``share_size``: one per worker, more only where memory asks for
 it); each stage runs once per share over whole arrays. What answers the object's rays is an
@@ -74,13 +75,51 @@ class TreeAnswerer:
 
 
 @dataclass
-class ShareResult:
-    """One share rendered: colours, which rays went to the object and what it answered."""
-    color: np.ndarray          # (n, 3) linear RGB of the share's camera rays
+class Specular:
+    """One specular object of a frame: its SceneTracer (of the scene's ``view`` for it: the
+    object alone, the environment shared: trace.scene_tracer.object_tracers) and the answerer
+    of its rays."""
+    st: object
+    answerer: object
+
+
+@dataclass
+class ObjectShare:
+    """What one specular object answered in a share."""
     handed: np.ndarray         # indices (into the share) of the rays handed to the object
-    hit: np.ndarray            # indices (into the share) of the rays that hit the object
-    answer: ObjectAnswer       # the answerer's result for the handed rays
+    answer: ObjectAnswer       # the answerer's result for the handed rays, in their order
+    won: np.ndarray            # (handed,) bool: the object is the ray's nearest hit
+
+    @property
+    def hit(self) -> np.ndarray:
+        """Indices (into the share) of the rays whose nearest hit is this object."""
+        return self.handed[self.won]
+
+
+@dataclass
+class ShareResult:
+    """One share rendered: colours, which rays went to each specular object and what it
+    answered (``objects``, in the scene's order)."""
+    color: np.ndarray          # (n, 3) linear RGB of the share's camera rays
+    objects: list[ObjectShare]
     stats: dict                # counts and seconds (summed over shares by sum_stats)
+
+    @property
+    def handed(self) -> np.ndarray:
+        """The rays handed to the first object (the only one in a scene of one)."""
+        return self.objects[0].handed
+
+    @property
+    def answer(self) -> ObjectAnswer:
+        """The first object's answer (the only one in a scene of one)."""
+        return self.objects[0].answer
+
+    @property
+    def hit(self) -> np.ndarray:
+        """Indices (into the share) of the rays that hit a specular object, ascending."""
+        if len(self.objects) == 1:
+            return self.objects[0].hit
+        return np.sort(np.concatenate([o.hit for o in self.objects]))
 
 
 class _Clock:
@@ -97,58 +136,132 @@ class _Clock:
         return cpu
 
 
-def shade_carried(st, obj: ObjectRays) -> tuple[np.ndarray, dict]:
-    """(1 - diffuse) * tint * the colour the output ray carries from the environment (and, for
-    dielectrics, the Fresnel-weighted reflection) for rays that hit the object; the local
-    illumination is added separately (it is object-only work, this is environment work)."""
-    mat = st.scene.object.material
+# Specular objects one camera ray may meet in a chain (a glass object seen in a mirror seen in
+# another is three): each link is one more answer pass over the rays still meeting objects, and
+# two mirrors facing each other would otherwise bounce a ray to no end; past the last link the
+# environment alone shades what an object's output rays meet.
+MAX_OBJECT_CHAIN = 3
+
+
+def box_entries(objs: list[Specular], origins, dirs, skip: int = -1) -> list:
+    """Each object's box entry distance of the rays (None for object ``skip``)."""
+    return [None if k == skip else o.st.box_entry(origins, dirs) for k, o in enumerate(objs)]
+
+
+def nearest_objects(objs: list[Specular], origins, dirs, tmax, entry: list
+                    ) -> list[ObjectShare | None]:
+    """Each object's answer for the rays whose box entry (``entry``: ``box_entries``) lies
+    before their nearest hit so far (``tmax``: the environment's, then the nearer objects'),
+    in the objects' order; the nearest hit wins (``ObjectShare.won``). An object without
+    entries (the one the rays leave) gets none (None)."""
+    best = np.array(tmax, np.float64, copy=True)
+    winner = np.full(len(origins), -1)
+    found: list = []
+    for k, obj in enumerate(objs):
+        if entry[k] is None:
+            found.append(None)
+            continue
+        handed = np.flatnonzero(entry[k] < best)
+        ans = obj.answerer(origins[handed], dirs[handed], best[handed])
+        rows = handed[ans.rays.hit]
+        best[rows] = np.minimum(best[rows], ans.rays.t_first[ans.rays.hit])
+        winner[rows] = k
+        found.append((handed, ans))
+    return [None if f is None else ObjectShare(f[0], f[1], winner[f[0]] == k)
+            for k, f in enumerate(found)]
+
+
+def shade_carried(objs: list[Specular], k: int, obj: ObjectRays, chain: int = 1
+                  ) -> tuple[np.ndarray, dict]:
+    """(1 - diffuse) * tint * the colour the output ray carries (and, for dielectrics, the
+    Fresnel-weighted reflection) for rays that hit object ``k``; what those rays meet is shaded
+    by ``shade_leaving``. The local illumination is added separately (it is object-only work,
+    this is environment work)."""
+    mat = objs[k].st.scene.object.material
     carried = np.zeros((len(obj.hit), 3))
     ok = ~obj.null
     counts = {"output_rays": int(ok.sum()), "null_rays": int(obj.null.sum())}
     if np.any(ok):
-        carried[ok] = st.env.shade_rays(obj.out_origin[ok], obj.out_dir[ok])
+        carried[ok] = shade_leaving(objs, k, obj.out_origin[ok], obj.out_dir[ok], chain, counts)
     if mat.kind == "dielectric":
         fr = obj.fresnel[:, None]
-        refl = st.env.shade_rays(obj.point, obj.refl_dir)
+        refl = shade_leaving(objs, k, obj.point, obj.refl_dir, chain, counts)
         carried = fr * refl + (1.0 - fr) * carried
         counts["reflected_rays"] = len(obj.point)
     return (1.0 - mat.diffuse) * np.asarray(mat.tint) * carried, counts
 
 
-def shade_share(st, origins, dirs, answerer) -> ShareResult:
+def shade_leaving(objs: list[Specular], k: int, origins, dirs, chain: int, counts: dict
+                  ) -> np.ndarray:
+    """(N, 3) colour seen along rays leaving object ``k``, the ``chain``-th object on their
+    way from the camera: the environment's, or another specular object's where one is nearer
+    (answered by its answerer, shaded in turn) while the chain is shorter than
+    MAX_OBJECT_CHAIN. ``counts["chained_hits"]`` adds the rays another object answered."""
+    env = objs[k].st.env
+    if len(objs) == 1 or chain >= MAX_OBJECT_CHAIN:
+        return env.shade_rays(origins, dirs)
+    env_hits = env.closest(origins, dirs)
+    col = np.zeros((len(origins), 3))
+    met = np.zeros(len(origins), bool)
+    entry = box_entries(objs, origins, dirs, skip=k)
+    for j, share in enumerate(nearest_objects(objs, origins, dirs, env_hits.t, entry)):
+        if share is None or not share.won.any():
+            continue
+        rows, obj = share.hit, share.answer.rays.take(share.won)
+        local = local_illumination(obj.point, obj.normal, dirs[rows],
+                                   objs[j].st.scene.object.material, env)
+        carried, sub = shade_carried(objs, j, obj, chain + 1)
+        col[rows] = local + carried
+        met[rows] = True
+        counts["chained_hits"] = counts.get("chained_hits", 0) + len(rows) \
+            + sub.get("chained_hits", 0)
+    rest = np.flatnonzero(~met)
+    col[rest] = env.shade_rays(origins[rest], dirs[rest], hits=env_hits.take(rest))
+    return col
+
+
+def shade_share(st, origins, dirs, answerer, others: tuple = ()) -> ShareResult:
     """Colours of one share of camera rays; the rays whose box entry lies in front of the
-    nearest environment hit are handed to ``answerer``."""
+    nearest environment hit are handed to ``answerer`` (the object of ``st``) and to each of
+    the scene's ``others`` (Specular), the nearest hit winning; a scene of one object makes
+    no pass more than that object needs."""
+    objs = [Specular(st, answerer), *others]
     t0, c0 = time.perf_counter(), time.process_time()
     stats: dict = {}
     clock = _Clock(stats)
     n = len(origins)
     col = np.zeros((n, 3))
     env_hits = st.env.closest(origins, dirs)       # found once: reused by the rays that miss
-    env_t = env_hits.t                              # the object
-    clock.lap("environment_hit")
-    handed = np.flatnonzero(st.box_entry(origins, dirs) < env_t)
+    clock.lap("environment_hit")                    # the objects
+    entry = box_entries(objs, origins, dirs)
     c1 = clock.lap("box_entry")
-    # object-only (the paper's measure): output rays and the object's local illumination
+    # object-only (the paper's measure): output rays and the objects' local illumination
     t1 = time.perf_counter()
-    ans = answerer(origins[handed], dirs[handed], env_t[handed])
-    hit = handed[ans.rays.hit]
-    obj = ans.rays.take(ans.rays.hit)
+    found = nearest_objects(objs, origins, dirs, env_hits.t, entry)
     clock.lap("object")
-    local = local_illumination(obj.point, obj.normal, dirs[hit], st.scene.object.material, st.env)
+    hits = [f.answer.rays.take(f.won) for f in found]
+    local = [local_illumination(h.point, h.normal, dirs[f.hit], o.st.scene.object.material,
+                                st.env) for f, h, o in zip(found, hits, objs)]
     c_obj, t_obj = clock.lap("local_light") - c1, time.perf_counter() - t1
-    carried, counts = shade_carried(st, obj)
-    col[hit] = local + carried
+    counts: dict = {}
+    for k, (f, h) in enumerate(zip(found, hits)):
+        carried, c = shade_carried(objs, k, h)
+        col[f.hit] = local[k] + carried
+        counts = sum_stats([counts, c])
     clock.lap("carried")
     rest = np.ones(n, bool)
-    rest[hit] = False
+    for f in found:
+        rest[f.hit] = False
     rest = np.flatnonzero(rest)
     col[rest] = st.env.shade_rays(origins[rest], dirs[rest], hits=env_hits.take(rest))
     clock.lap("environment_shade")
-    stats.update({"camera_rays": n, "object_candidates": len(handed), "object_hits": len(hit),
-                  "events": int(obj.events.sum()), "object_cpu_s": c_obj, "object_wall_s": t_obj,
-                  "total_cpu_s": time.process_time() - c0,
-                  "total_wall_s": time.perf_counter() - t0, **counts, **ans.stats})
-    return ShareResult(color=col, handed=handed, hit=hit, answer=ans, stats=stats)
+    stats.update({"camera_rays": n, "object_candidates": sum(len(f.handed) for f in found),
+                  "object_hits": sum(len(h.hit) for h in hits),
+                  "events": sum(int(h.events.sum()) for h in hits), "object_cpu_s": c_obj,
+                  "object_wall_s": t_obj, "total_cpu_s": time.process_time() - c0,
+                  "total_wall_s": time.perf_counter() - t0, **counts,
+                  **sum_stats(f.answer.stats for f in found)})
+    return ShareResult(color=col, objects=found, stats=stats)
 
 
 def sum_stats(dicts) -> dict:
@@ -192,8 +305,9 @@ def _own_peak_rss_kib() -> int:
 class FrameResult:
     """A frame's camera rays rendered, in ray order (row-major, top row first)."""
     color: np.ndarray          # (n, 3) linear RGB
-    object_mask: np.ndarray    # (n,) bool: the ray hit the object
-    answer: np.ndarray         # (n,) int8 answer code; NOT_HANDED off the object's box
+    object_mask: np.ndarray    # (n,) bool: the ray hit a specular object
+    answer: np.ndarray         # (n,) int8 answer code of the nearest object hit (else of the
+                               # first handed the ray); NOT_HANDED off every object's box
     why: np.ndarray            # (n,) int8 reason a ray was traced (0 where none)
     stats: dict                # summed over shares
     shares: int
@@ -210,9 +324,14 @@ def join_shares(parts: list[ShareResult], wall_s: float) -> FrameResult:
     off = 0
     for p, size in zip(parts, sizes):
         mask[p.hit + off] = True
-        if p.answer.answer is not None:
-            answer[p.handed + off] = p.answer.answer
-            why[p.handed + off] = p.answer.why
+        for o in p.objects[::-1]:         # a ray's first object's code, its nearest's if any
+            if o.answer.answer is not None:
+                answer[o.handed + off] = o.answer.answer
+                why[o.handed + off] = o.answer.why
+        for o in p.objects[1:]:
+            if o.answer.answer is not None:
+                answer[o.hit + off] = o.answer.answer[o.won]
+                why[o.hit + off] = o.answer.why[o.won]
         off += size
     color = np.concatenate([p.color for p in parts]) if parts else np.zeros((0, 3))
     return FrameResult(color=color, object_mask=mask, answer=answer, why=why,
@@ -230,14 +349,15 @@ class FilmedFrame:
 
 
 def render_frame(st, film: Film, answerer, workers=None, progress=None,
-                 per_worker: int = 1) -> FilmedFrame:
+                 per_worker: int = 1, others: tuple = ()) -> FilmedFrame:
     """Render ``film``'s camera rays in shares over ``workers`` processes (forked: they
-    inherit ``st`` and ``answerer``; each makes its share's rays and develops their colours);
-    ``progress(fraction)`` is called as shares finish and may raise to stop."""
+    inherit ``st``, ``answerer`` and the scene's ``others`` (Specular); each makes its share's
+    rays and develops their colours); ``progress(fraction)`` is called as shares finish and
+    may raise to stop."""
     workers = workers_default() if workers is None else workers
 
     def work(a, b):
-        share = shade_share(st, *film.rays(a, b), answerer)
+        share = shade_share(st, *film.rays(a, b), answerer, others)
         hit = np.zeros(b - a)
         hit[share.hit] = 1.0
         return film.develop(a, b, {"color": share.color}, {"object": hit}), share.stats

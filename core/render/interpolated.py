@@ -24,40 +24,48 @@ import numpy as np
 
 from ..parallel import map_chunks, workers_default
 from ..ritree.answers import ANSWER_NAMES, SOLVED, WHY_NAMES, is_traced
-from ..ritree.query import TRACING_STAGES, TreeQuery
+from ..ritree.query import TRACING_STAGES, QueryOptions, TreeQuery
 from ..scene.camera import Shot, check_image_size
 from ..trace.scene_tracer import SceneTracer
 from .compare import compare_share
 from .exact import RenderResult
 from .film import Film, FilmPart
-from .frame import ExactAnswerer, TreeAnswerer, peak_rss_mib, share_size, sum_stats
+from .frame import (ExactAnswerer, Specular, TreeAnswerer, peak_rss_mib, share_size,
+                    sum_stats)
 
 ERROR_GREY_MAX_DEG = 2.0     # Figure 14: greyscale up to 2 degrees, green beyond
 
 
 def render_tree(st: SceneTracer, tree, shot: Shot = Shot(), options=None, reference=True,
-                workers=None, progress=None) -> RenderResult:
+                workers=None, progress=None, others: tuple = ()) -> RenderResult:
     """Render ``shot`` of the scene ``st`` traces through ``tree`` (with the render-time rules
     ``options``), ``shot.samples`` rays per pixel, the tree answering every one; with
     ``reference`` also exactly (same rays, same process, interleaved) for the error statistics
-    and images. Returns a RenderResult whose ``masks`` hold "traced", "object" (with one sample
-    bool images; with more the fraction of each pixel's samples traced / hitting the object),
-    "angle_error_deg" (per pixel, the mean over its measured samples; NaN where none) and, with
-    reference, "exact" (the exact image). Stats count camera rays (samples)."""
+    and images. ``others``: the scene's other specular objects as (SceneTracer, tree, or None
+    to trace it exactly) pairs (``tree`` may be None too). Returns a RenderResult whose
+    ``masks`` hold "traced", "object" (with one sample bool images; with more the fraction of
+    each pixel's samples traced / hitting an object), "angle_error_deg" (per pixel, the mean
+    over its measured samples; NaN where none) and, with reference, "exact" (the exact image).
+    Stats count camera rays (samples); with several objects the summary has each one's."""
     scene = st.scene
     cam, w, h = shot.resolve(scene)
     check_image_size(w, h)
     film = Film(cam, w, h, shot.samples)
-    query = TreeQuery(tree, st, options)
-    tree_answerer = TreeAnswerer(query)
-    exact_answerer = ExactAnswerer(st) if reference else None
+    options = QueryOptions() if options is None else options
+    pairs = [(st, tree), *others]
+    names = [s.scene.object.name for s, _ in pairs]
+    through = [Specular(s, ExactAnswerer(s) if t is None else TreeAnswerer(TreeQuery(t, s, options)))
+               for s, t in pairs]
+    exact = [Specular(s, ExactAnswerer(s)) for s, _ in pairs] if reference else None
     workers = workers_default() if workers is None else workers
     size = share_size(film.n_rays, workers)
 
     def work(a, b):
-        cs = compare_share(st, *film.rays(a, b), tree_answerer, exact_answerer,
-                           exact_first=bool((a // size) % 2))
-        return _develop(film, a, b, cs)
+        cs = compare_share(st, *film.rays(a, b), through[0].answerer,
+                           exact[0].answerer if reference else None,
+                           exact_first=bool((a // size) % 2), others_tree=through[1:],
+                           others_exact=exact[1:] if reference else ())
+        return _develop(film, a, b, cs, names)
 
     t0 = time.perf_counter()
     parts = map_chunks(work, film.n_rays, size, workers, progress)
@@ -67,8 +75,11 @@ def render_tree(st: SceneTracer, tree, shot: Shot = Shot(), options=None, refere
     si = sum_stats(p.tree_stats for p in parts)
     stats = _answer_stats(counts, si)
     summary = {"scene": scene.name, "camera": cam.name, "width": w, "height": h,
-               "samples": shot.samples, "mode": "interpolated", "policy": query.opt.policy,
+               "samples": shot.samples, "mode": "interpolated", "policy": options.policy,
                **_tree_summary(counts, si, len(parts), wall)}
+    if len(pairs) > 1:
+        summary["objects"] = {name: _object_summary(counts, name, t is not None)
+                              for name, (_, t) in zip(names, pairs)}
     masks = {"traced": dev.fraction("traced"), "object": dev.fraction("object"),
              "angle_error_deg": dev.mean("err", "measured")}
     image = dev.images["color"]
@@ -79,6 +90,17 @@ def render_tree(st: SceneTracer, tree, shot: Shot = Shot(), options=None, refere
         stats["exact_counts"] = sx
     stats["summary"] = summary
     return RenderResult(image=image, stats=stats, masks=masks)
+
+
+def _object_summary(counts: dict, name: str, has_tree: bool) -> dict:
+    """One specular object's share of a frame: its pixels (camera rays it is the nearest hit
+    of) and the fractions of them traced and solved along a sample's path."""
+    n = counts.get(f"{name}/hit", 0)
+    return {"through": "tree" if has_tree else "exact", "object_pixels": n,
+            "traced_fraction_of_object": round(counts.get(f"{name}/traced_hit", 0) / n
+                                               if n else 0.0, 5),
+            "solved_fraction_of_object": round(counts.get(f"{name}/solved_hit", 0) / n
+                                               if n else 0.0, 5)}
 
 
 @dataclass
@@ -94,27 +116,38 @@ class _TreePart:
     null_disagree: int
 
 
-def _develop(film: Film, a: int, b: int, cs) -> _TreePart:
-    """A compared share's colours and masks onto the film; its counts for the stats."""
+def _develop(film: Film, a: int, b: int, cs, names: list[str]) -> _TreePart:
+    """A compared share's colours and masks onto the film; its counts for the stats, in sum
+    and per object (``names``: the objects' names; an object traced exactly counts every ray
+    handed to it as traced)."""
     tree, n = cs.tree, b - a
     hit = np.zeros(n)
     hit[tree.hit] = 1.0
     traced = np.zeros(n)
-    traced[tree.handed] = is_traced(tree.answer.answer)
-    solved = np.zeros(n, bool)
-    solved[tree.handed] = tree.answer.answer == SOLVED
+    codes, counts = [], {}
+    for name, o in zip(names, tree.objects):
+        ans = o.answer.answer
+        own = np.ones(len(o.handed)) if ans is None else is_traced(ans)
+        traced[o.handed] = np.maximum(traced[o.handed], own)
+        counts.update({f"{name}/hit": int(o.won.sum()),
+                       f"{name}/traced_hit": int(own[o.won].sum()),
+                       f"{name}/solved_hit": 0 if ans is None else int((ans[o.won] == SOLVED).sum())})
+        if ans is not None:
+            codes.append((ans, o.answer.why))
+    ans = np.concatenate([c[0] for c in codes]) if codes else np.zeros(0, np.int8)
+    why = np.concatenate([c[1] for c in codes]) if codes else np.zeros(0, np.int8)
     measured = np.isfinite(cs.err_deg)
     filtered = {"color": tree.color}
     if cs.exact is not None:
         filtered["exact"] = cs.exact.color
     box = {"object": hit, "traced": traced, "measured": measured,
            "err": np.where(measured, cs.err_deg, 0.0)}
-    counts = {"answer": np.bincount(tree.answer.answer, minlength=len(ANSWER_NAMES)),
-              "why": np.bincount(tree.answer.why[is_traced(tree.answer.answer)],
-                                 minlength=len(WHY_NAMES)),
-              "traced": int(traced.sum()), "traced_hit": int(traced[tree.hit].sum()),
-              "solved_hit": int(solved[tree.hit].sum()),
-              "hit": len(tree.hit)}
+    counts.update({"answer": np.bincount(ans, minlength=len(ANSWER_NAMES)),
+                   "why": np.bincount(why[is_traced(ans)], minlength=len(WHY_NAMES)),
+                   "traced": int(traced.sum()),
+                   "traced_hit": sum(counts[f"{m}/traced_hit"] for m in names),
+                   "solved_hit": sum(counts[f"{m}/solved_hit"] for m in names),
+                   "hit": len(tree.hit)})
     return _TreePart(film.develop(a, b, filtered, box), tree.stats,
                      cs.exact.stats if cs.exact is not None else {}, counts,
                      cs.err_deg[measured], cs.hit_disagree, cs.null_disagree)

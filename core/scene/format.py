@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from .graph import GraphError, graph_to_dict
-from .model import Camera, Light, Material, Mesh, Patch, Scene, Texture, World
+from .model import (Camera, Light, Material, Mesh, Patch, Scene, SpecularObject, Texture,
+                    World)
 from .validate import SceneError
 
 FORMAT = "riray-scene"
@@ -34,8 +35,8 @@ CAMERA_KINDS = ("perspective", "orthographic")
 SENSOR_FITS = ("AUTO", "HORIZONTAL", "VERTICAL")
 CAMERA_FIELDS = ("kind", "lens", "sensor_width", "sensor_height", "sensor_fit", "shift_x",
                  "shift_y", "ortho_scale", "clip_start", "clip_end")
-TOP_KEYS = ("format", "version", "name", "render", "object", "environment", "materials", "lights",
-            "world", "cameras")
+TOP_KEYS = ("format", "version", "name", "render", "objects", "object", "environment",
+            "materials", "lights", "world", "cameras")
 
 
 def _texture_dict(t: Texture) -> dict:
@@ -128,20 +129,25 @@ def _world_dict(w: World) -> dict:
     return out
 
 
-def scene_to_dict(scene: Scene) -> dict:
-    """The canonical JSON-ready dict of ``scene`` (every field written; images by path only)."""
-    om = scene.object.material
-    return {
-        "format": FORMAT, "version": VERSION, "name": scene.name,
-        "render": {"width": int(scene.render.width), "height": int(scene.render.height),
-                   "max_events": int(scene.render.max_events)},
-        "object": {
-            "name": scene.object.name,
+def _object_dict(obj: SpecularObject) -> dict:
+    om = obj.material
+    return {"name": obj.name,
             "material": {"kind": om.kind, "ior": float(om.ior), "tint": list(map(float, om.tint)),
                          "base_color": list(map(float, om.base_color)),
                          "diffuse": float(om.diffuse), "specular": float(om.specular),
                          "shininess": float(om.shininess)},
-            "patches": [_patch_dict(p) for p in scene.object.patches]},
+            "patches": [_patch_dict(p) for p in obj.patches]}
+
+
+def scene_to_dict(scene: Scene) -> dict:
+    """The canonical JSON-ready dict of ``scene`` (every field written; images by path only):
+    one specular object as ``object``, several as the list ``objects``."""
+    objects = [_object_dict(o) for o in scene.objects]
+    return {
+        "format": FORMAT, "version": VERSION, "name": scene.name,
+        "render": {"width": int(scene.render.width), "height": int(scene.render.height),
+                   "max_events": int(scene.render.max_events)},
+        **({"object": objects[0]} if len(objects) == 1 else {"objects": objects}),
         "environment": {"meshes": [_mesh_dict(m) for m in scene.meshes]},
         "materials": [_material_dict(m) for m in scene.materials.values()],
         "lights": [_light_dict(li) for li in scene.lights],

@@ -3,15 +3,16 @@
 Conventions (shared by every module):
 - Right-handed world, Z up (Blender's).
 - Colours are linear (scene-referred) RGB triples; the PNG writer applies the sRGB transfer.
-- A scene holds exactly one *specular object* (the thing the RI-Tree bakes), made of patches,
-  and an *environment* of triangle meshes that the object's output rays see.
+- A scene holds one or more *specular objects* (each baked into its own RI-Tree), made of
+  patches, and an *environment* of triangle meshes that their output rays see; a ray leaving
+  one specular object may meet another.
 - Patch ids are the index of the patch in ``SpecularObject.patches``; class ids group patches
   joined smoothly (the paper's equivalence classes). -1 is reserved for "no patch" (environment).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -209,7 +210,7 @@ class RenderSettings:
 
 @dataclass
 class Scene:
-    object: SpecularObject
+    objects: list[SpecularObject]
     meshes: list[Mesh] = field(default_factory=list)
     materials: dict[str, Material] = field(default_factory=dict)
     lights: list[Light] = field(default_factory=list)
@@ -217,6 +218,28 @@ class Scene:
     cameras: list[Camera] = field(default_factory=list)
     render: RenderSettings = field(default_factory=RenderSettings)
     name: str = "scene"
+
+    @property
+    def object(self) -> SpecularObject:
+        """The scene's specular object; ValueError when it has several (``view`` picks one)."""
+        if len(self.objects) != 1:
+            raise ValueError(f"the scene has {len(self.objects)} specular objects "
+                             f"({object_names(self.objects)}); name the one meant")
+        return self.objects[0]
+
+    def object_index(self, name: str) -> int:
+        """The index of the specular object called ``name`` (ValueError naming the others)."""
+        for i, obj in enumerate(self.objects):
+            if obj.name == name:
+                return i
+        raise ValueError(f"no specular object named {name!r}; objects: "
+                         f"{object_names(self.objects)}")
+
+    def view(self, index: int) -> "Scene":
+        """The scene as specular object ``index`` sees it: that object alone (its bake, its
+        tree and its exact tracer), the environment, lights, world, cameras and render
+        settings shared (not copied) with this scene."""
+        return replace(self, objects=[self.objects[index]])
 
     def camera(self, name: str | None) -> Camera:
         """The camera called ``name`` (the first one when None)."""
@@ -228,3 +251,8 @@ class Scene:
             if cam.name == name:
                 return cam
         raise ValueError(f"no camera named {name!r}; cameras: {[c.name for c in self.cameras]}")
+
+
+def object_names(objects) -> str:
+    """The names of specular objects, comma separated, for messages."""
+    return ", ".join(repr(o.name) for o in objects)

@@ -368,6 +368,49 @@ def _camera(v, path: str) -> Camera:
     return c
 
 
+def _specular_object(o, path: str, name_default: str | None) -> SpecularObject:
+    """One specular object at ``path`` (its name defaults to ``name_default``; without one it
+    is required, and the errors after it name the object too)."""
+    named = () if name_default else ("name",)         # a list's objects are named
+    o = read_fields(o, path, ("patches",) + named,
+                    ("material",) + (("name",) if name_default else ()))
+    name = read_string(o.get("name", name_default), at_key(path, "name"))
+    try:
+        patches = [_patch(p, at_key(at_key(path, "patches"), i))
+                   for i, p in enumerate(read_list(o["patches"], at_key(path, "patches")))]
+        if not patches:
+            fail(at_key(path, "patches"), "the specular object needs at least one patch")
+        reason = degenerate_reason(patches)
+        if reason:
+            fail(at_key(path, "patches"), f"the object is degenerate ({reason}): there is no "
+                                          "surface to trace")
+        check_object_offset(patches, path)
+        material = _object_material(o.get("material", {}), at_key(path, "material"))
+    except SceneError as e:
+        if name_default:                  # the only object: its path says enough
+            raise
+        raise SceneError(f"specular object {name!r}: {e}") from None
+    return SpecularObject(name=name, patches=patches, material=material)
+
+
+def _specular_objects(d: dict) -> list[SpecularObject]:
+    """The scene's specular objects: the list ``objects`` (each named, names unique), or one
+    ``object`` (the older form)."""
+    if "object" in d and "objects" in d:
+        fail("", "give the specular objects as 'objects' (a list) or one as 'object', not both")
+    if "object" not in d and "objects" not in d:
+        fail("", "missing required key 'objects' (a list of specular objects; or 'object', "
+                 "one)")
+    if "object" in d:
+        return [_specular_object(d["object"], "object", "object")]
+    items = read_list(d["objects"], "objects")
+    if not items:
+        fail("objects", "the scene needs at least one specular object")
+    objects = [_specular_object(o, at_key("objects", i), None) for i, o in enumerate(items)]
+    check_unique(objects, "objects", "specular object")
+    return objects
+
+
 def parse_scene(d, base_dir: str | None, load_images: bool) -> Scene:
     if not isinstance(d, dict):
         fail("", f"expected a JSON object (got {type_name(d)})")
@@ -376,7 +419,7 @@ def parse_scene(d, base_dir: str | None, load_images: bool) -> Scene:
     if d.get("version") != VERSION or type(d.get("version")) is not int:
         fail("version", f"unsupported version {d.get('version')!r} (this riray reads version "
                          f"{VERSION})")
-    read_fields(d, "", ("format", "version", "object"), TOP_KEYS)
+    read_fields(d, "", ("format", "version"), TOP_KEYS)
     images = SceneImages(base_dir, load_images)
 
     render = RenderSettings()
@@ -391,18 +434,7 @@ def parse_scene(d, base_dir: str | None, load_images: bool) -> Scene:
     check_unique(mats, "materials", "material")
     materials = {m.name: m for m in mats}
 
-    o = read_fields(d["object"], "object", ("patches",), ("name", "material"))
-    patches = [_patch(p, at_key("object.patches", i))
-               for i, p in enumerate(read_list(o["patches"], "object.patches"))]
-    if not patches:
-        fail("object.patches", "the specular object needs at least one patch")
-    reason = degenerate_reason(patches)
-    if reason:
-        fail("object.patches", f"the object is degenerate ({reason}): there is no surface to "
-                               "trace")
-    check_object_offset(patches)
-    obj = SpecularObject(name=read_string(o.get("name", "object"), "object.name"), patches=patches,
-                         material=_object_material(o.get("material", {}), "object.material"))
+    objects = _specular_objects(d)
 
     env = read_fields(d.get("environment", {}), "environment", (), ("meshes",))
     meshes = [_mesh(m, at_key("environment.meshes", i), materials)
@@ -413,7 +445,7 @@ def parse_scene(d, base_dir: str | None, load_images: bool) -> Scene:
     cameras = [_camera(c, at_key("cameras", i))
                for i, c in enumerate(read_list(d.get("cameras", []), "cameras"))]
     check_unique(cameras, "cameras", "camera")
-    return Scene(object=obj, meshes=meshes, materials=materials, lights=lights, world=world,
+    return Scene(objects=objects, meshes=meshes, materials=materials, lights=lights, world=world,
                  cameras=cameras, render=render, name=read_string(d.get("name", "scene"), "name"))
 
 

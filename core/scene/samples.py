@@ -308,7 +308,7 @@ def build(name: str, material=None) -> Scene:
         zoom = band[np.argmax(band @ _direction(az, el))]
     cams = make_cameras(pts, zoom, az, el, room_bounds())
     obj_mat = default_mat if mat_override is None else mat_override
-    return Scene(object=SpecularObject(name=name, patches=patches, material=obj_mat),
+    return Scene(objects=[SpecularObject(name=name, patches=patches, material=obj_mat)],
                  meshes=meshes, materials=materials, lights=lights, world=world, cameras=cams,
                  render=RenderSettings(**RENDER), name=name)
 

@@ -239,8 +239,9 @@ def degenerate_reason(patches) -> str | None:
     return None
 
 
-def check_object_offset(patches) -> None:
-    """The object's points lie within MAX_OBJECT_OFFSET box diagonals of the origin."""
+def check_object_offset(patches, path: str = "object") -> None:
+    """The points of the object at ``path`` lie within MAX_OBJECT_OFFSET box diagonals of the
+    origin."""
     pts = [p.surface.points.reshape(-1, 3) if p.surface is not None else p.vertices
            for p in patches]
     allp = np.concatenate(pts)
@@ -249,6 +250,6 @@ def check_object_offset(patches) -> None:
     if far > MAX_OBJECT_OFFSET * diag:
         i = next(i for i, q in enumerate(pts) if np.abs(q).max() == far)
         key = "vertices" if patches[i].surface is None else "points"
-        fail(f"object.patches[{i}].{key}", f"the object lies {far:.3g} m from the origin, more "
+        fail(f"{path}.patches[{i}].{key}", f"the object lies {far:.3g} m from the origin, more "
               f"than {MAX_OBJECT_OFFSET:g} times its size ({diag:.3g} m): coordinates that far "
               "out cannot be traced to the tracer's tolerance; move the scene to the origin")

@@ -20,17 +20,18 @@ PROXY_GRID = 16
 
 
 def build_environment(scene: Scene) -> Environment:
-    """The scene's environment (meshes, lights, world), with the object's tessellated proxy as
-    shadow caster when some light casts shadows."""
+    """The scene's environment (meshes, lights, world), with every specular object's
+    tessellated proxy as shadow caster when some light casts shadows."""
     occluder = None
     if any(light.shadows for light in scene.lights):
-        occluder = MeshSet([_proxy_mesh(p) for p in scene.object.patches])
+        occluder = MeshSet([_proxy_mesh(p) for obj in scene.objects for p in obj.patches])
     return Environment(scene, occluder=occluder)
 
 
 class SceneTracer:
-    """A scene with its acceleration structures built once: the object's patch tracer and the
-    environment (``build_environment``).
+    """A scene of one specular object with its acceleration structures built once: the
+    object's patch tracer and the environment (``build_environment``). A scene of several
+    has one per object (``object_tracers``).
 
     ``tracer`` / ``env``: parts already built for this scene (a PatchTracer of an object with
     the same patches; an Environment of the same environment, lights and object), e.g. kept
@@ -55,6 +56,13 @@ class SceneTracer:
     def box_entry(self, origins, dirs):
         """Distance at which each ray enters the object's bounding box (inf if it misses)."""
         return slab_entry(origins, dirs, self.box_lo, self.box_hi)
+
+
+def object_tracers(scene: Scene, env: Environment | None = None) -> list[SceneTracer]:
+    """One SceneTracer per specular object of ``scene`` (its ``view``), sharing one
+    environment (``env``, built here when None) whose shadows every object casts."""
+    env = env if env is not None else build_environment(scene)
+    return [SceneTracer(scene.view(i), env=env) for i in range(len(scene.objects))]
 
 
 def slab_entry(o, d, lo, hi):

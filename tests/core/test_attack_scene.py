@@ -130,8 +130,8 @@ def test_extreme_valid_surface_normals_are_the_spheres():
 
 
 def test_extreme_valid_scene_traces_finite(tmp_path, capsys):
-    scene = Scene(object=SpecularObject("ball", [Patch("s", 0, surface=_extreme_sphere())],
-                                        ObjectMaterial(kind="glass", ior=1.5)))
+    scene = Scene(objects=[SpecularObject("ball", [Patch("s", 0, surface=_extreme_sphere())],
+                                         ObjectMaterial(kind="glass", ior=1.5))])
     save_scene(scene, tmp_path / "x.json")          # validates
     rng = np.random.default_rng(5)
     tgt = rng.uniform(-1.0, 1.0, (600, 3))

@@ -427,8 +427,8 @@ def _floor_scene(graph, world=None, lights=()):
     floor = Mesh(name="floor", material="g", vertices=np.array(
         [[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], float),
         triangles=np.array([[0, 1, 2], [0, 2, 3]]))
-    return Scene(object=SpecularObject("o", [Patch("p", 0, vertices=np.eye(3),
-                                                   triangles=np.array([[0, 1, 2]]))]),
+    return Scene(objects=[SpecularObject("o", [Patch("p", 0, vertices=np.eye(3),
+                                                    triangles=np.array([[0, 1, 2]]))])],
                  meshes=[floor], materials={"g": Material("g", kind="nodes", graph=graph)},
                  lights=list(lights), world=world or World(ambient=0.5))
 

@@ -68,7 +68,7 @@ def mirror():
         np.array([-1.0, -1, 0]), np.array([1.0, -1, 0]), np.array([-1.0, 1, 0]),
         np.array([1.0, 1, 0])))], ObjectMaterial(kind="mirror"))
     cam = Camera("cam", look_at_matrix((0.4, -2.5, 2.2), (0.0, 0.0, 0.0)), lens=30.0)
-    scene = Scene(object=obj, cameras=[cam], render=RenderSettings(width=SIZE, height=SIZE))
+    scene = Scene(objects=[obj], cameras=[cam], render=RenderSettings(width=SIZE, height=SIZE))
     st = SceneTracer(scene)
     params = BakeParams(viewpoint_depth=2, direction_depth=3, viewpoint_refine=1, pad=0.2)
     return st, bake(st, params, region_for_cameras(st, params, [cam], SIZE, SIZE), workers=1)

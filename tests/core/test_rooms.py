@@ -14,7 +14,7 @@ def scene_with_room(**kw):
     surf = NurbsSurface(1, 1, np.array([0, 0, 1, 1.0]), np.array([0, 0, 1, 1.0]),
                         np.array([[[0, 0, 1.0], [0, 1, 1]], [[1, 0, 1], [1, 1, 1]]]), np.ones((2, 2)))
     obj = SpecularObject(name="o", patches=[Patch(name="p", class_id=0, surface=surf)])
-    return Scene(object=obj, meshes=meshes, materials=materials, lights=lights, world=world)
+    return Scene(objects=[obj], meshes=meshes, materials=materials, lights=lights, world=world)
 
 
 def test_room_validates_and_round_trips(tmp_path):

@@ -140,7 +140,7 @@ CASES = [
     (["format"], "scene", r"^format: expected 'riray-scene'"),
     (["version"], 2, r"^version: unsupported version 2"),
     (["lihgts"], [], r"^top level: unknown key 'lihgts'; did you mean 'lights'\?"),
-    (["object"], None, r"^top level: missing required key 'object'"),
+    (["object"], None, r"^top level: missing required key 'objects'"),
     (PATCH + ["weights", 1, 1], -1.0, r"^object\.patches\[0\]\.weights\[1\]\[1\]: weight must be > 0 \(got -1\.0\)"),
     (PATCH + ["weights", 0, 1], float("nan"), r"^object\.patches\[0\]\.weights\[0\]\[1\]: must be finite"),
     (PATCH + ["points", 1, 0, 2], float("inf"), r"^object\.patches\[0\]\.points\[1\]\[0\]\[2\]: must be finite"),

@@ -26,7 +26,7 @@ def quad(z, half, name, mat):
 def scene(lights, meshes=None, world=None, materials=None):
     mats = {"floor": Material("floor", "diffuse", Texture(color=tuple(ALBEDO)))}
     mats.update(materials or {})
-    return Scene(object=SpecularObject("obj", []),
+    return Scene(objects=[SpecularObject("obj", [])],
                  meshes=meshes if meshes is not None else [quad(0.0, 50.0, "floor", "floor")],
                  materials=mats, lights=lights, world=world or World(color=(0.1, 0.2, 0.3)))
 

@@ -22,7 +22,7 @@ def scene(lights, meshes=None, world=None, materials=None):
     mats = {"floor": Material("floor", "diffuse", Texture(color=tuple(ALBEDO))),
             "lamp": Material("lamp", "emission", Texture(color=(1.0, 0.5, 0.25)), strength=4.0)}
     mats.update(materials or {})
-    return Scene(object=SpecularObject("obj", []),
+    return Scene(objects=[SpecularObject("obj", [])],
                  meshes=meshes if meshes is not None else [quad(0.0, 50.0, "floor", "floor")],
                  materials=mats, lights=lights, world=world or World(color=(0.1, 0.2, 0.3)))
 
