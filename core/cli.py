@@ -111,14 +111,53 @@ def _bake(scene, args, params, out, st, cluster=None):
     return tree
 
 
-def _load_tree(args, scene):
-    """The RI-Tree of ``args.tree`` for ``scene``; a tree without samples (its cameras saw
-    nothing of the object) is used with a warning: every ray it meets is traced."""
+def _load_tree(args, scene, path=None):
+    """The RI-Tree of ``path`` (default ``args.tree``) for ``scene``'s object; a tree without
+    samples (its cameras saw nothing of the object) is used with a warning: every ray it meets
+    is traced."""
     from .ritree import tree as ritree
-    tree = ritree.load(args.tree, scene)
+    path = args.tree if path is None else path
+    tree = ritree.load(path, scene)
     if len(tree.samples) == 0:
-        _warn(args.cmd, f"{args.tree}: the RI-Tree holds no samples; every ray is traced exactly")
+        _warn(args.cmd, f"{path}: the RI-Tree holds no samples; every ray is traced exactly")
     return tree
+
+
+def _tree_paths(specs, scene) -> dict:
+    """{object index: tree path} of ``--tree`` values: ``OBJECT=PATH``, or a bare PATH in a
+    scene of one object. ValueError (before any tree is read) for an unknown or repeated
+    object, a bare path among several objects, or a tree that another of the scene's objects
+    was baked for."""
+    from .scene.model import object_names
+    names = [o.name for o in scene.objects]
+    paths: dict = {}
+    for spec in specs:
+        name, eq, path = spec.partition("=")
+        if not (eq and name in names):
+            if len(names) > 1:
+                raise ValueError(f"--tree {spec}: the scene has {len(names)} specular objects "
+                                 f"({object_names(scene.objects)}): give --tree OBJECT=PATH")
+            name, path = names[0], spec
+        i = names.index(name)
+        if i in paths:
+            raise ValueError(f"--tree: two trees for the object {name!r}")
+        _check_tree_owner(path, scene, i)
+        paths[i] = path
+    return paths
+
+
+def _check_tree_owner(path, scene, i) -> None:
+    """ValueError when the tree at ``path`` was baked for another of the scene's objects than
+    object ``i`` (its header's fingerprint is theirs); any other mismatch is the load's."""
+    from .ritree.cache import describe, fingerprint
+    if len(scene.objects) == 1:
+        return
+    have = describe(path)["header"].get("fingerprint")
+    prints = [fingerprint(o, scene.render.max_events) for o in scene.objects]
+    if have != prints[i] and have in prints:
+        raise ValueError(f"{path}: this RI-Tree was baked for the object "
+                         f"{scene.objects[prints.index(have)].name!r}, not "
+                         f"{scene.objects[i].name!r}")
 
 
 def _connect(spec):
@@ -132,13 +171,25 @@ def _connect(spec):
     return cluster
 
 
+def _object_view(scene, name):
+    """The scene as its specular object ``name`` sees it (Scene.view); its only object when
+    ``name`` is None. ValueError when the scene has several and no name is given."""
+    if name is None:
+        if len(scene.objects) > 1:
+            from .scene.model import object_names
+            raise ValueError(f"the scene has {len(scene.objects)} specular objects "
+                             f"({object_names(scene.objects)}): choose one with --object NAME")
+        return scene
+    return scene.view(scene.object_index(name))
+
+
 def cmd_bake(args):
     from .trace.scene_tracer import SceneTracer
     params = _bake_params(args)
     _check_writable(args.out)
+    scene = _object_view(_load(args.scene), args.object)
     cluster = _connect(args.scheduler) if args.scheduler else None
     try:
-        scene = _load(args.scene)
         st = SceneTracer(scene)
         with command_output():
             tree = _bake(scene, args, params, args.out, st, cluster)
@@ -159,7 +210,7 @@ def cmd_info(args):
 def cmd_render(args):
     from .render.exact import render_exact, save_render
     from .scene.camera import Shot
-    from .trace.scene_tracer import SceneTracer
+    from .trace.scene_tracer import object_tracers
     options = _query_options(args) if args.tree else None
     _check_writable(args.out if args.tree else Path(args.out).parent, folder=True)
     scene = _load(args.scene)
@@ -167,18 +218,25 @@ def cmd_render(args):
     progress = None if args.quiet else _progress("render")
     if args.tree:
         from .render.interpolated import render_tree, save_tree_render
-        tree = _load_tree(args, scene)
-        res = render_tree(SceneTracer(scene), tree, shot, options=options,
+        paths = _tree_paths(args.tree, scene)
+        sts = object_tracers(scene)
+        trees = [_load_tree(args, st.scene, paths[i]) if i in paths else None
+                 for i, st in enumerate(sts)]
+        for st, tree in zip(sts, trees):
+            if tree is None:
+                _warn(args.cmd, f"no --tree for the object {st.scene.object.name!r}: it is "
+                      "traced exactly")
+        res = render_tree(sts[0], trees[0], shot, options=options,
                           reference=not args.no_reference, workers=args.workers,
-                          progress=progress)
+                          progress=progress, others=list(zip(sts[1:], trees[1:])))
         with command_output():
             paths = save_tree_render(res, args.out)
         print(json.dumps({"written": [str(p) for p in paths], **res.stats["summary"]}, indent=2))
         return 0
     t0 = time.perf_counter()
-    st = SceneTracer(scene)
+    sts = object_tracers(scene)
     build_s = time.perf_counter() - t0
-    res = render_exact(st, shot, workers=args.workers, progress=progress)
+    res = render_exact(sts[0], shot, workers=args.workers, progress=progress, others=sts[1:])
     res.stats["summary"]["build_s"] = round(build_s, 4)
     with command_output():
         paths = save_render(res, args.out)
@@ -239,7 +297,7 @@ def cmd_trace_rays(args):
     options = _query_options(args) if args.tree else None
     out_path = args.out if args.out.endswith(".npz") else args.out + ".npz"
     _check_writable(out_path)
-    scene = _load(args.scene)
+    scene = _object_view(_load(args.scene), args.object)
     o, u = _load_rays(args.rays)
     st = SceneTracer(scene)
     extra = {}
@@ -271,13 +329,17 @@ def cmd_trace_rays(args):
 
 def cmd_validate(args):
     from .scene.io import load_scene
-    from .trace.scene_tracer import SceneTracer, check_camera_outside
+    from .trace.scene_tracer import check_camera_outside, object_tracers
     scene = load_scene(args.scene)
     if scene.cameras:
-        st = SceneTracer(scene)
-        for cam in scene.cameras:
-            check_camera_outside(st, cam)
-    print(f"{args.scene}: ok — {len(scene.object.patches)} patches, {len(scene.meshes)} meshes, "
+        for st in object_tracers(scene):
+            for cam in scene.cameras:
+                check_camera_outside(st, cam)
+    objects = "" if len(scene.objects) == 1 else (
+        f"{len(scene.objects)} specular objects ("
+        + ", ".join(f"{o.name!r}: {len(o.patches)}" for o in scene.objects) + " patches), ")
+    print(f"{args.scene}: ok — {objects or f'{len(scene.object.patches)} patches, '}"
+          f"{len(scene.meshes)} meshes, "
           f"{len(scene.lights)} lights, cameras {[c.name for c in scene.cameras]}")
     return 0
 

@@ -117,6 +117,11 @@ def build_parser(commands: dict):
     def scene_arg(p):
         p.add_argument("scene", help="scene file (.json) or a sample name (teapot, vase_glass, ...)")
 
+    def object_arg(p, verb):
+        p.add_argument("--object", default=None, metavar="NAME",
+                       help=f"the specular object to {verb} (required when the scene has "
+                       "several)")
+
     p = sub.add_parser("render", help="render a camera's view exactly")
     scene_arg(p)
     p.add_argument("--out", required=True, help="output path stem: writes STEM.png, STEM.npy, "
@@ -128,8 +133,11 @@ def build_parser(commands: dict):
                    "(default 1: the pixel centre; more: stratified, Blackman-Harris filtered)")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--tree", default=None, help="render through this baked RI-Tree (.rit); "
-                   "--out is then a folder (interpolated, exact, traced mask, error, stats)")
+    p.add_argument("--tree", action="append", default=None, metavar="[OBJECT=]PATH",
+                   help="render through this baked RI-Tree (.rit); --out is then a folder "
+                   "(interpolated, exact, traced mask, error, stats). In a scene of several "
+                   "specular objects give one OBJECT=PATH per object (repeat --tree); an "
+                   "object without one is traced exactly")
     p.add_argument("--no-reference", action="store_true",
                    help="with --tree: skip the exact reference render and error statistics")
     tree_options(p)
@@ -137,6 +145,7 @@ def build_parser(commands: dict):
 
     p = sub.add_parser("bake", help="bake the object's RI-Tree into a .rit cache file")
     scene_arg(p)
+    object_arg(p, "bake")
     p.add_argument("--out", required=True, help="the .rit file to write (atomically)")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
@@ -156,6 +165,7 @@ def build_parser(commands: dict):
                        "normal, patch, cls, events, refl_dir, fresnel, tree, uv (see "
                        "docs/cli.md).")
     scene_arg(p)
+    object_arg(p, "apply f of")
     p.add_argument("--rays", required=True, help="input .npy: N x 6 float64 rows (ox, oy, oz, "
                    "dx, dy, dz); directions need not be unit but must be non-zero")
     p.add_argument("--out", required=True, help="output .npz (the suffix is added if missing)")
