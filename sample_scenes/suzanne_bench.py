@@ -2,7 +2,7 @@
 bpy module; benchmark output, not a test).
 
     python sample_scenes/suzanne_bench.py [--levels 2] [--size 300] [--quality default]
-        [--max-events 16] [--workers 2] [--out bench_out/suzanne]
+        [--max-events 16] [--cycles-spp 256] [--workers 2] [--out bench_out/suzanne]
 
 The glass_sphere sample's room and close camera, emission-only (riray.bench.compare's
 Whitted scene, built by build_blend.py), with the sphere replaced by Suzanne at its place and
@@ -10,10 +10,12 @@ size, facing the camera: a Subdivision Surface modifier at ``--levels``, shaded 
 glass Principled BSDF (Transmission 1, Roughness 0, IOR 1.5). The object is baked with the add-on at ``--quality``
 and rendered with the RI-Tree Preview engine at one ray per pixel, through the tree and
 exactly (the cache moved aside). Paths end after ``--max-events`` reflections and refractions
-in both renderers (riray's max events, Cycles' bounces). Cycles renders the Whitted answer point-sampled (16 samples
-at a 0.01 px filter, blender_bench.py's settings) and, at 1 spp with the object as a holdout,
-the mask of Suzanne's pixels. PSNR over those pixels (display-range linear RGB). Writes
-OUT/suzanne.json and the pictures.
+in both renderers (riray's max events, Cycles' bounces). Cycles renders the Whitted answer
+point-sampled (``--cycles-spp`` samples at a 0.01 px filter, denoiser off: Cycles picks
+reflection or refraction at random at each crossing of the glass, so 16 samples leave noise
+about 30 dB from the converged image) and, at 1 spp with the object as a holdout, the mask of
+Suzanne's pixels. PSNR over those pixels (display-range linear RGB). Writes OUT/suzanne.json
+and the pictures.
 """
 
 from __future__ import annotations
@@ -82,6 +84,7 @@ def holdout_mask(scene, obj, path: Path) -> np.ndarray:
     """(H, W) bool: the pixels whose centre ray meets ``obj`` first (Cycles, object holdout)."""
     scene.render.engine = "CYCLES"
     scene.cycles.samples, scene.cycles.filter_width = 1, blender_bench.POINT_FILTER_PX
+    scene.cycles.use_denoising = False
     scene.render.film_transparent, obj.is_holdout = True, True
     scene.render.image_settings.color_mode = "RGBA"
     try:
@@ -145,8 +148,9 @@ def run(args) -> dict:
     bpy.ops.wm.save_as_mainfile(filepath=str(out / "suzanne.blend"))
     mask = holdout_mask(scene, suz, out / "mask.exr")
     scene.render.engine = "CYCLES"
-    scene.cycles.samples = blender_bench.POINT_SPP
+    scene.cycles.samples = args.cycles_spp
     scene.cycles.filter_width = blender_bench.POINT_FILTER_PX
+    scene.cycles.use_denoising = False      # the denoiser blurs what the glass shows
     cyc, cyc_s = blender_bench.render_to_array(scene, out / "cycles.exr")
     suz.riray.quality = args.quality.upper()
     t0 = time.perf_counter()
@@ -169,7 +173,7 @@ def run(args) -> dict:
     write_png(out / "traced.png", np.repeat(traced_px[..., None], 3, axis=2).astype(float))
     scalars = lambda d: {k: v for k, v in d.items() if isinstance(v, (int, float, str, bool))}
     return {"levels": args.levels, "quality": args.quality,
-            "max_events": args.max_events,
+            "max_events": args.max_events, "cycles_spp": args.cycles_spp,
             "size": args.size, "mesh": mesh_stats(suz), "object_pixels_cycles": int(mask.sum()),
             "psnr_tree_db": psnr(tree[mask], cyc[mask]),
             "psnr_exact_db": psnr(exact[mask], cyc[mask]),
@@ -191,6 +195,8 @@ def main(argv=None) -> int:
     ap.add_argument("--max-events", type=int, default=16, choices=range(1, 65), metavar="N",
                     help="reflections and refractions per path (riray's max events, Cycles' "
                          "bounces)")
+    ap.add_argument("--cycles-spp", type=int, default=256, choices=range(1, 4097), metavar="N",
+                    help="Cycles' samples per pixel, all at the pixel centre (the reference)")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                     choices=range(1, 257), metavar="N")
     ap.add_argument("--out", default="bench_out/suzanne")
