@@ -55,7 +55,7 @@ class ExactAnswerer:
 
     def __call__(self, origins, dirs, tmax) -> ObjectAnswer:
         before = dict(self.st.tracer.stats)
-        rays = self.st.object_function(origins, dirs, tmax)
+        rays = self.st.object_function(origins, dirs, tmax, fresnel_tree=True)
         return ObjectAnswer(rays=rays, stats=tracer_work(self.st, before))
 
 
@@ -174,9 +174,10 @@ def nearest_objects(objs: list[Specular], origins, dirs, tmax, entry: list
 def shade_carried(objs: list[Specular], k: int, obj: ObjectRays, chain: int = 1
                   ) -> tuple[np.ndarray, dict]:
     """(1 - diffuse) * tint * the colour the output ray carries (and, for dielectrics, the
-    Fresnel-weighted reflection) for rays that hit object ``k``; what those rays meet is shaded
-    by ``shade_leaving``. The local illumination is added separately (it is object-only work,
-    this is environment work)."""
+    Fresnel-weighted reflection and, where traced exactly, the colour of the Fresnel tree's
+    other branches: ObjectRays.out_weight, branch_color) for rays that hit object ``k``; what
+    those rays meet is shaded by ``shade_leaving``. The local illumination is added separately
+    (it is object-only work, this is environment work)."""
     mat = objs[k].st.scene.object.material
     carried = np.zeros((len(obj.hit), 3))
     ok = ~obj.null
@@ -186,7 +187,8 @@ def shade_carried(objs: list[Specular], k: int, obj: ObjectRays, chain: int = 1
     if mat.kind == "dielectric":
         fr = obj.fresnel[:, None]
         refl = shade_leaving(objs, k, obj.point, obj.refl_dir, chain, counts)
-        carried = fr * refl + (1.0 - fr) * carried
+        carried = fr * refl + (1.0 - fr) * (obj.out_weight[:, None] * carried
+                                            + obj.branch_color)
         counts["reflected_rays"] = len(obj.point)
     return (1.0 - mat.diffuse) * np.asarray(mat.tint) * carried, counts
 

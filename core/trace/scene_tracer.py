@@ -46,12 +46,14 @@ class SceneTracer:
         self.box_hi = self.tracer.hi + 1e-6 * self.tracer.diag
 
     def object_function(self, origins, dirs, tmax=None, first=None,
-                        record=None) -> ObjectRays:
+                        record=None, fresnel_tree: bool = False) -> ObjectRays:
         """f of the rays (trace_object; ``first``: first hits already found, ``record``: an
-        EventRecord to fill, see there)."""
+        EventRecord to fill, see there); ``fresnel_tree``: a dielectric's Fresnel tree
+        followed too, its other branches shaded by the environment (rendering, not baking)."""
         return trace_object(self.tracer, self.scene.object.material, origins, dirs,
                             self.scene.render.max_events, tmax=tmax, first=first,
-                            record=record)
+                            record=record,
+                            shade=self.env.shade_rays if fresnel_tree else None)
 
     def box_entry(self, origins, dirs):
         """Distance at which each ray enters the object's bounding box (inf if it misses)."""

@@ -367,3 +367,108 @@ def test_grazing_exit_of_the_issue():
     dev = 2 * (th_i - np.arcsin(np.sin(th_i) / 1.5))
     assert g.events[0] == 2
     assert angle(g.out_dir, np.array([[np.cos(dev), -np.sin(dev), 0.0]]))[0] < 1e-3
+
+
+def _forward_back(o, d):
+    """A shade for Fresnel-tree tests: red for rays leaving along -z, green along +z."""
+    return np.stack([d[:, 2] < 0, d[:, 2] > 0, np.zeros(len(d), bool)], axis=1).astype(float)
+
+
+def test_dielectric_fresnel_tree_head_on_closed_form(sphere_tracer, monkeypatch):
+    """A ray through the sphere's centre: each crossing reflects R = ((n - 1) / (n + 1))^2 and
+    transmits 1 - R, so past the first refraction the output ray (forward) carries 1 - R, and
+    the internal reflections leave forward sum_k (1 - R) R^(2k) - (1 - R) = R^2 / (1 + R) and
+    backward sum_k (1 - R) R^(2k+1) = R / (1 + R) (a geometric series; the tree's weight
+    floor lowered so that its truncation is below 1e-12)."""
+    monkeypatch.setattr("riray.trace.objectfn.FRESNEL_MIN_WEIGHT", 1e-14)
+    ior = 4.0
+    r = ((ior - 1) / (ior + 1)) ** 2
+    res = trace_object(sphere_tracer, ObjectMaterial(kind="dielectric", ior=ior),
+                       C + [[0, 0, 5.0]], [[0, 0, -1.0]], max_events=64, shade=_forward_back)
+    assert abs(res.fresnel[0] - r) < 1e-12
+    assert abs(res.out_weight[0] - (1 - r)) < 1e-12
+    assert np.abs(res.branch_color[0] - [r * r / (1 + r), r / (1 + r), 0.0]).max() < 1e-9
+
+
+def test_dielectric_fresnel_tree_conserves_energy(sphere_tracer, monkeypatch):
+    """A sphere never traps light (the inside angle equals the refraction angle, below the
+    critical one), so the output ray's weight plus the weights of every ray the tree leaves
+    (shade = 1) is all the light past the first refraction, for any ray; without a shade (the
+    bake's f) the output ray carries all of it; and a glass (no Fresnel) has no tree."""
+    monkeypatch.setattr("riray.trace.objectfn.FRESNEL_MIN_WEIGHT", 1e-14)
+    o, d = rays_at_sphere(300, np.random.default_rng(11), b_max=0.9)
+    ones = lambda oo, dd: np.ones((len(oo), 3))
+    mat = ObjectMaterial(kind="dielectric", ior=1.5)
+    res = trace_object(sphere_tracer, mat, o, d, max_events=64, shade=ones)
+    assert np.all(res.out_weight < 1.0)
+    assert np.abs(res.out_weight + res.branch_color[:, 0] - 1.0).max() < 1e-9
+    plain = trace_object(sphere_tracer, mat, o, d, max_events=64)
+    assert np.all(plain.out_weight == 1.0) and np.all(plain.branch_color == 0.0)
+    assert np.abs(plain.out_dir - res.out_dir).max() == 0.0
+    gla = trace_object(sphere_tracer, ObjectMaterial(kind="glass", ior=1.5), o, d,
+                       max_events=64, shade=ones)
+    assert np.all(gla.out_weight == 1.0) and np.all(gla.branch_color == 0.0)
+
+
+def test_dielectric_fresnel_tree_floor_and_depth(sphere_tracer):
+    """At the default weight floor and few events the tree stops where its weights say: head
+    on at IOR 1.5 (R = 0.04) the first internal reflection (0.04) is followed and leaves
+    backward with 0.04 * 0.96, its own reflection (0.0016 < FRESNEL_MIN_WEIGHT) is dropped;
+    with 2 events in all (entry and exit) that reflection meets the front as a third event:
+    trapped, it carries nothing."""
+    r = 0.04
+    args = (sphere_tracer, ObjectMaterial(kind="dielectric", ior=1.5), C + [[0, 0, 5.0]],
+            [[0, 0, -1.0]])
+    res = trace_object(*args, max_events=8, shade=_forward_back)
+    assert np.abs(res.branch_color[0] - [0.0, r * (1 - r), 0.0]).max() < 1e-12
+    short = trace_object(*args, max_events=2, shade=_forward_back)
+    assert np.all(short.branch_color[0] == 0.0) and abs(short.out_weight[0] - (1 - r)) < 1e-12
+
+
+def _sphere_tree(o, d, inside, w, events, ior, max_events, shade):
+    """Plain reference: the full Fresnel tree of one ray on the analytic sphere (C, R), every
+    branch followed to ``max_events`` events (no weight floor), recursively."""
+    oc = o - C
+    b, c = oc @ d, oc @ oc - R * R
+    disc = b * b - c
+    ts = [t for t in (-b - np.sqrt(max(disc, 0.0)), -b + np.sqrt(max(disc, 0.0)))
+          if disc > 0 and t > 1e-6 * R]
+    if not ts:
+        return w * shade(o[None], d[None])[0]
+    if events == max_events:
+        return np.zeros(3)
+    p = o + ts[0] * d
+    n = (p - C) / R * (-1.0 if inside else 1.0)
+    eta = ior if inside else 1.0 / ior
+    cos_i = -(d @ n)
+    refl = d + 2 * cos_i * n
+    sin2 = eta * eta * (1 - cos_i * cos_i)
+    if sin2 >= 1.0:
+        return _sphere_tree(p, refl, inside, w, events + 1, ior, max_events, shade)
+    cos_t = np.sqrt(1 - sin2)
+    rs = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
+    rp = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
+    f = 0.5 * (rs * rs + rp * rp)
+    refr = eta * d + (eta * cos_i - cos_t) * n
+    return (_sphere_tree(p, refl, inside, w * f, events + 1, ior, max_events, shade)
+            + _sphere_tree(p, refr / np.linalg.norm(refr), not inside, w * (1 - f), events + 1,
+                           ior, max_events, shade))
+
+
+def test_dielectric_fresnel_tree_against_plain_reference(sphere_tracer, monkeypatch):
+    """The colour a dielectric sphere shows (first reflection, output ray, the tree's other
+    branches) equals a plain recursive Fresnel tree on the analytic sphere, for rays at every
+    impact parameter; shade a smooth function of direction."""
+    monkeypatch.setattr("riray.trace.objectfn.FRESNEL_MIN_WEIGHT", 1e-14)
+    shade = lambda oo, dd: 0.5 * (dd + 1.0)
+    ior, max_events = 1.7, 12
+    o, d = rays_at_sphere(40, np.random.default_rng(12), b_max=0.95)
+    res = trace_object(sphere_tracer, ObjectMaterial(kind="dielectric", ior=ior), o, d,
+                       max_events=max_events, shade=shade)
+    fr = res.fresnel[:, None]
+    got = fr * shade(res.point, res.refl_dir) \
+        + (1 - fr) * (res.out_weight[:, None] * shade(res.out_origin, res.out_dir)
+                      + res.branch_color)
+    want = np.array([_sphere_tree(o[i], d[i], False, 1.0, 0, ior, max_events, shade)
+                     for i in range(len(o))])
+    assert np.abs(got - want).max() < 1e-7

@@ -83,7 +83,8 @@ def empty_result(o, d) -> ObjectRays:
                       normal=np.zeros((n, 3)), patch=np.full(n, -1, np.int64),
                       cls=np.full(n, -1, np.int64), events=np.zeros(n, np.int64),
                       refl_dir=np.zeros((n, 3)), fresnel=np.zeros(n),
-                      tree=np.zeros(n, np.uint32), uv=np.zeros((n, 2)))
+                      tree=np.zeros(n, np.uint32), uv=np.zeros((n, 2)), out_weight=np.ones(n),
+                      branch_color=np.zeros((n, 3)))
 
 
 @dataclass

@@ -124,6 +124,6 @@ class TreeQuery:
             tr = np.flatnonzero(is_traced(b.ans))
             if len(tr):
                 ex = self.st.object_function(b.o[tr], b.d[tr], b.tmax[tr],
-                                             first=b.known.of(tr))
+                                             first=b.known.of(tr), fresnel_tree=True)
                 for k, val in ex.__dict__.items():
                     getattr(b.res, k)[tr] = val
