@@ -292,3 +292,27 @@ def test_scene_file_bad_normals_are_one_line_errors(change, message):
     with pytest.raises(SceneError, match=message) as e:
         scene_from_dict(d)
     assert "\n" not in str(e.value)
+
+
+def test_open_slab_fresnel_tree_leaves_one_reflection_each_way():
+    """A dielectric slab of two open sheets: every crossing of the parallel faces reflects the
+    same Fresnel R (the entry's, at the entry angle), so past the entry the output ray carries
+    1 - R, and at the default weight floor the tree's one kept branch (R, reflected off the
+    bottom sheet from inside) leaves through the top with R (1 - R), upward; its own
+    reflection (R^2 < FRESNEL_MIN_WEIGHT) is dropped."""
+    vt, tt = sheet(0.5, up=True)
+    vb, tb = sheet(0.0, up=False)
+    obj = SpecularObject("slab", [Patch("top", 0, vertices=vt, triangles=tt),
+                                  Patch("bottom", 1, vertices=vb, triangles=tb)])
+    d = unit([0.5, 0.2, -1.0])
+    up_down = lambda o, dd: np.stack([dd[:, 2] > 0, dd[:, 2] < 0, 0 * dd[:, 2]], 1).astype(float)
+    out = trace_object(PatchTracer(obj), ObjectMaterial(kind="dielectric", ior=IOR),
+                       np.array([[0, 0, 2.0]]), d[None], shade=up_down)
+    cos_i = -d[2]
+    cos_t = np.sqrt(1 - (1 - cos_i ** 2) / IOR ** 2)
+    rs = (cos_i - IOR * cos_t) / (cos_i + IOR * cos_t)
+    rp = (IOR * cos_i - cos_t) / (IOR * cos_i + cos_t)
+    r = 0.5 * (rs ** 2 + rp ** 2)
+    assert out.fresnel[0] == pytest.approx(r, abs=1e-12)
+    assert out.out_weight[0] == pytest.approx(1 - r, abs=1e-12)
+    assert np.abs(out.branch_color[0] - [r * (1 - r), 0.0, 0.0]).max() < 1e-12
