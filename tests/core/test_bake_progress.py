@@ -55,7 +55,7 @@ def _clocked_bake(work_clock, st, params, region=None):
 def test_progress_follows_the_work(work_clock):
     ball = SpecularObject("ball", [Patch("s", 0, surface=sphere((0.0, 0.0, 0.0), 0.5))],
                           ObjectMaterial(kind="glass", ior=1.5))
-    st = SceneTracer(Scene(object=ball, render=RenderSettings(max_events=8)))
+    st = SceneTracer(Scene(objects=[ball], render=RenderSettings(max_events=8)))
     share, frac, msg = _clocked_bake(work_clock, st, BakeParams(viewpoint_depth=1,
                                                                 direction_depth=4))
     assert np.all(np.diff(frac) >= 0) and frac[-1] == pytest.approx(1.0)

@@ -62,7 +62,7 @@ def two_balls():
     patches = [Patch(f"b{i}", i, surface=sphere((x, 0.0, 0.0), 0.03))
                for i, x in enumerate((-1.0, 1.0))]
     obj = SpecularObject("balls", patches, ObjectMaterial(kind="mirror"))
-    return SceneTracer(Scene(object=obj, render=RenderSettings(max_events=4)))
+    return SceneTracer(Scene(objects=[obj], render=RenderSettings(max_events=4)))
 
 
 CAM_SIZE = 64

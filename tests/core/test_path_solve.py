@@ -42,7 +42,7 @@ def unit(v):
 
 
 def scene_of(obj, max_events=8):
-    return SceneTracer(Scene(object=obj, render=RenderSettings(max_events=max_events)))
+    return SceneTracer(Scene(objects=[obj], render=RenderSettings(max_events=max_events)))
 
 
 def top_cells(depth, lo, hi):

@@ -16,7 +16,7 @@ R = 0.5
 def ball():
     obj = SpecularObject("ball", [Patch("s", 0, surface=sphere((0.0, 0.0, 0.0), R))],
                          ObjectMaterial(kind="mirror"))
-    return SceneTracer(Scene(object=obj, render=RenderSettings()))
+    return SceneTracer(Scene(objects=[obj], render=RenderSettings()))
 
 
 def unit(v):

@@ -72,7 +72,7 @@ def mirrors(*rects):
 
     patches = [Patch(f"m{i}", i, surface=flat(*r)) for i, r in enumerate(rects)]
     obj = SpecularObject("mirrors", patches, ObjectMaterial(kind="mirror"))
-    return SceneTracer(Scene(object=obj, render=RenderSettings(max_events=4)))
+    return SceneTracer(Scene(objects=[obj], render=RenderSettings(max_events=4)))
 
 
 def one_cell_tree(patch, null=None, extras=None, n_classes=1):

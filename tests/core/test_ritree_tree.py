@@ -124,7 +124,7 @@ def sphere_object(max_events=8):
 
 
 def tracer_of(obj, max_events=8):
-    return SceneTracer(Scene(object=obj, render=RenderSettings(max_events=max_events)))
+    return SceneTracer(Scene(objects=[obj], render=RenderSettings(max_events=max_events)))
 
 
 # --------------------------------------------------------------------------- fixtures
