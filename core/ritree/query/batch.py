@@ -105,6 +105,7 @@ class Batch:
     must: np.ndarray                   # (N,) bool: only Newton's exact hit may answer the ray
     newton_ok: np.ndarray              # (N,) bool: Newton's exact hit answered the ray
     exact_first_hits: int = 0          # rays whose exact first hit picked their class
+    certified_first_hits: int = 0      # exact first hits found without the full search
     exact_mirror_hits: int = 0         # mirror rays answered from Newton's exact hit
     solved: int = 0                    # rays solved along a sample's path (SOLVED)
     loc: Located | None = None         # (M) the rays that found their four leaves

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..answers import MISS, WHY_CLASSES, WHY_UNSAMPLED
+from .certify import first_hits
 
 
 def classify(q, b) -> None:
@@ -25,13 +26,13 @@ def classify(q, b) -> None:
             many = many[:0]
     if len(two) or len(many):
         with b.clock("first_hits"):
-            hit = q.st.tracer.intersect(b.o[rows[two]], b.d[rows[two]], tmax=b.tmax[rows[two]]) \
-                if len(two) else None
+            hit = first_hits(q, b, rows[two], b.loc.take(two),
+                             srt[b.set_of[two]][:, [0, -1]]) if len(two) else None
             if len(two):
                 b.known.add(rows[two], hit)
                 pc[two] = first_hit_class(q, b, two, np.flatnonzero(n_cls == 2), hit)
             if len(many):
-                pc[many] = first_hit_of_many(q, b, many, srt)
+                pc[many] = first_hit_of_many(q, b, many, srt[b.set_of[many]])
     b.exact_first_hits = len(two) + len(many)
     b.ans[rows[pc == -1]] = MISS
     b.pc = pc
@@ -61,12 +62,14 @@ def first_hit_class(q, b, two, two_sets, hit) -> np.ndarray:
 
 def first_hit_of_many(q, b, many, srt) -> np.ndarray:
     """Class of the exact first hit against every patch (-1: miss) of the located rays
-    ``many``, whose sets hold more than two classes (``srt``: each set's classes, sorted). A
-    ray whose hit is of a class none of its samples has is traced (WHY_UNSAMPLED): -2."""
+    ``many``, whose sets hold more than two classes (``srt``: each ray's samples' classes,
+    sorted). A ray whose hit is of a class none of its samples has is traced (WHY_UNSAMPLED):
+    -2."""
     rows = b.loc.ray[many]
-    hit = q.st.tracer.intersect(b.o[rows], b.d[rows], tmax=b.tmax[rows])
+    distinct = np.where(np.diff(srt, axis=1, prepend=-2) != 0, srt, -1)
+    hit = first_hits(q, b, rows, b.loc.take(many), distinct)
     b.known.add(rows, hit)
     cls = np.where(hit.hit, hit.cls, -1)
-    sampled = np.any(srt[b.set_of[many]] == cls[:, None], axis=1) | (cls == -1)
+    sampled = np.any(srt == cls[:, None], axis=1) | (cls == -1)
     b.trace(rows[~sampled], WHY_UNSAMPLED)
     return np.where(sampled, cls, -2)

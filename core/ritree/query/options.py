@@ -73,6 +73,11 @@ class QueryOptions:
                                        # samples share one NURBS patch) the same at the exact
                                        # hit Newton finds from the interpolated patch
                                        # parameters; "interpolate": the blended output ray (paper)
+    certify_first_hits: bool = True    # an exact first hit the query needs is taken from
+                                       # Newton on its samples' patches where the occlusion
+                                       # proxy shows nothing nearer, and a miss where the proxy
+                                       # shows nothing at all (query/certify.py); the full
+                                       # search for the rest. False: the full search (paper)
 
     def validate(self) -> "QueryOptions":
         if self.policy not in ("ri", "raytree"):

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..answers import WHY_PATH, WHY_TOLERANCE, WHY_UNSAMPLED
 from ..tree import BOUNDARY, PATH_CHANGE
+from .certify import first_hits
 from .sets import group_rows
 
 
@@ -29,7 +30,7 @@ def check_misses(q, b) -> None:
     if len(r):
         new = r[known.pos[r] < 0]        # the others' first hit stage searched every patch
         if len(new):
-            known.add(new, q.st.tracer.intersect(b.o[new], b.d[new], tmax=b.tmax[new]))
+            known.add(new, first_hits(q, b, new))
         b.trace(r[known.hit(r)], WHY_UNSAMPLED)
 
 

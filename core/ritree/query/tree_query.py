@@ -49,8 +49,10 @@ class TreeQuery:
         tree.leaf_ok, tree.leaf_sampled, tree.cell_rect
         if self.material.kind == "mirror" and self.opt.one_path:
             tree.class_paths         # a mirror's paths by patch group (tolerance.one_path)
-        # the path solver's occlusion proxy (query/paths.py)
-        self.proxy = st.tracer.occlusion_proxy if self.opt.solve_paths else None
+        # the occlusion proxy of the path solver (query/paths.py) and of certified first hits
+        # (query/certify.py)
+        self.proxy = st.tracer.occlusion_proxy \
+            if self.opt.solve_paths or self.opt.certify_first_hits else None
         # a bake that measured no viewpoint cell (a full tree, or one whose every test ray was
         # traced) left no viewpoint-level errors to bound
         if (self.opt.max_error_deg is not None and self.opt.fallback_angle_deg is not None
@@ -91,6 +93,7 @@ class TreeQuery:
             solve_paths(self, b)
         self._trace(b)
         stats = {"exact_first_hits": b.exact_first_hits,
+                 "certified_first_hits": b.certified_first_hits,
                  "exact_mirror_hits": b.exact_mirror_hits, "solved_along_path": b.solved,
                  **{f"query_{k}_cpu_s": v for k, v in b.clock.cpu.items()}}
         return b.res, b.ans, b.why, stats
