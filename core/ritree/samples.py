@@ -21,9 +21,10 @@ SAMPLE_FIELDS = ("out_o", "out_d", "point", "normal", "patch", "null", "tree", "
 @dataclass
 class Samples:
     """Ray samples (S of them); float32 geometry, int32 patch ids; ``uv`` (S, 2) float32 the
-    first hit's normalized patch parameters (ObjectRays.uv); ``ev_patch`` (S, K) int32 and
-    ``ev_uv`` (S, K, 2) float32 the patch (-1: none) and normalized parameters of the hits of
-    events 1..K after the first (trace.objectfn.EventRecord, K = RECORDED_EVENTS)."""
+    first hit's normalized patch parameters (ObjectRays.uv; with an EventRecord its
+    ``first_uv``: on a mesh, the triangle); ``ev_patch`` (S, K) int32 and ``ev_uv`` (S, K, 2)
+    float32 the patch (-1: none) and recorded parameters of the hits of events 1..K after the
+    first (trace.objectfn.EventRecord, K = RECORDED_EVENTS)."""
 
     out_o: np.ndarray
     out_d: np.ndarray
@@ -58,7 +59,7 @@ class Samples:
                    res.out_origin.astype(np.float32), res.out_dir.astype(np.float32),
                    res.point.astype(np.float32), res.normal.astype(np.float32),
                    res.patch.astype(np.int32), res.null.astype(bool), res.tree.astype(np.uint32),
-                   res.uv.astype(np.float32),
+                   (res.uv if record is None else record.first_uv).astype(np.float32),
                    None if record is None else record.patch.astype(np.int32),
                    None if record is None else record.uv.astype(np.float32))
 

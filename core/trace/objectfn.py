@@ -43,6 +43,11 @@ REFLECT, REFRACT = 1, 2
 # carry them as seeds for solving a query ray exactly along a sample's path; 7 covers every
 # path of the default max_events (8), trapped ones included.
 RECORDED_EVENTS = 7
+# A recorded hit on a mesh patch keeps its triangle t as its two normalized parameters
+# (t mod TRI_BASE, t div TRI_BASE) / TRI_LEVELS: exact through the cache's 16-bit parameter
+# codes (ritree.codec), and what solving along the path starts from (trace.meshwalk).
+TRI_BASE = 1 << 16
+TRI_LEVELS = TRI_BASE - 1
 # A dielectric's Fresnel tree follows a branch while it carries at least this fraction of the
 # light that entered the object (the weight of the chain after the first refraction): on
 # smooth glass Suzanne 1e-2 renders within 0.05 dB of 1e-4's tree with half its rays.
@@ -109,18 +114,41 @@ def fresnel_dielectric(cos_i, eta):
     return np.where(sin_t2 >= 1.0, 1.0, 0.5 * (rs * rs + rp * rp))
 
 
+def tri_params(tri) -> np.ndarray:
+    """(N, 2) the normalized parameters a recorded mesh hit on triangles ``tri`` (N,) keeps."""
+    t = np.asarray(tri, np.int64)
+    return np.stack([t % TRI_BASE, t // TRI_BASE], axis=1) / TRI_LEVELS
+
+
+def params_tri(uv) -> np.ndarray:
+    """(N,) int64 the triangles of recorded mesh hits' normalized parameters ``uv`` (N, 2)."""
+    k = np.rint(np.asarray(uv, np.float64) * TRI_LEVELS).astype(np.int64)
+    return k[:, 0] + TRI_BASE * k[:, 1]
+
+
+def recorded_params(tracer, patch, hit) -> np.ndarray:
+    """(N, 2) what a path record keeps of hits ``hit`` (PatchHit) on patches ``patch``: the
+    normalized patch parameters on NURBS, the triangle (``tri_params``) on meshes."""
+    uv = tracer.normalized_uv(patch, hit.u, hit.v)
+    mesh = np.flatnonzero((patch >= 0) & tracer.is_mesh[np.maximum(patch, 0)])
+    uv[mesh] = tri_params(hit.tri[mesh])
+    return uv
+
+
 @dataclass
 class EventRecord:
     """The hits of events 1..RECORDED_EVENTS (after the first) of N traced rays: the patch
-    (-1: no such event) and the normalized patch parameters (N, K, 2) in [0, 1]^2."""
+    (-1: no such event) and its ``recorded_params`` (N, K, 2) in [0, 1]^2; and those of the
+    first hit (``first_uv`` (N, 2), zero on a miss)."""
 
     patch: np.ndarray
     uv: np.ndarray
+    first_uv: np.ndarray
 
     @classmethod
     def empty(cls, n: int) -> "EventRecord":
         return cls(patch=np.full((n, RECORDED_EVENTS), -1, np.int32),
-                   uv=np.zeros((n, RECORDED_EVENTS, 2)))
+                   uv=np.zeros((n, RECORDED_EVENTS, 2)), first_uv=np.zeros((n, 2)))
 
 
 def _first_hits(tracer, o, d, tmax, known):
@@ -165,6 +193,8 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
     split = shade is not None and material.kind == "dielectric"
     branches = _Branches()
     res.normal, _, _ = oriented(d, first.normal, first.geo_normal)
+    if record is not None:
+        record.first_uv[:] = recorded_params(tracer, first.patch, first)
 
     act = np.flatnonzero(first.hit)
     cur_o, cur_d = o[act], d[act]
@@ -172,28 +202,19 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
     nrm, geo, back = oriented(cur_d, first.normal[act], first.geo_normal[act])
     tree = np.full(len(act), TREE_HASH_SEED, dtype=np.uint64)   # the running ray-tree hash
     inside = np.zeros(len(act), bool) if inside is None else np.asarray(inside, bool)[act].copy()
-    ior = float(material.ior)
     t_min2 = SECONDARY_T_MIN_REL * tracer.diag
     for event in range(max_events):
         res.events[act] += 1
-        if material.kind == "mirror":
-            new_d = reflect(cur_d, event_normal(cur_d, nrm, geo))
-        else:
-            on_mesh = tracer.is_mesh[patch]
-            inside = np.where(on_mesh, back, inside)
-            eta = np.where(inside, ior, 1.0 / ior)
-            n_t = event_normal(cur_d, nrm, geo, eta)
-            new_d, tir = refract(cur_d, n_t, eta)
-            if split and event > 0:
-                branches.split(act, pts, cur_d, nrm, geo, n_t, eta, tir, inside, event + 1,
-                               res.out_weight)
-            if event == 0 and material.kind == "dielectric":
-                cos_i = -np.einsum("ij,ij->i", cur_d, nrm)
-                res.fresnel[act] = fresnel_dielectric(cos_i, eta)
-                res.refl_dir[act] = reflect(cur_d, event_normal(cur_d, nrm, geo))
-            inside ^= ~tir
-        kind = REFLECT if material.kind == "mirror" else np.where(tir, REFLECT, REFRACT)
-        tree = tree_hash_step(tree, patch, kind)
+        ev = surface_event(tracer, material, cur_d, nrm, geo, back, patch, inside)
+        new_d, inside = ev.out_dir, ev.inside_after
+        if split and event > 0:
+            branches.split(act, pts, cur_d, nrm, geo, ev.n_t, ev.eta, ev.tir, ev.inside,
+                           event + 1, res.out_weight)
+        if event == 0 and material.kind == "dielectric":
+            cos_i = -np.einsum("ij,ij->i", cur_d, nrm)
+            res.fresnel[act] = fresnel_dielectric(cos_i, ev.eta)
+            res.refl_dir[act] = reflect(cur_d, event_normal(cur_d, nrm, geo))
+        tree = tree_hash_step(tree, patch, ev.kind)
         cur_o = pts
         cur_d = new_d
         nxt = tracer.intersect(cur_o, cur_d, tmin=np.full(len(act), t_min2))
@@ -206,7 +227,7 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
         pts, patch = nxt.point[keep], nxt.patch[keep]
         if record is not None and event < min(RECORDED_EVENTS, max_events - 1):
             record.patch[act, event] = patch
-            record.uv[act, event] = tracer.normalized_uv(patch, nxt.u[keep], nxt.v[keep])
+            record.uv[act, event] = recorded_params(tracer, patch, nxt.take(keep))
         nrm, geo, back = oriented(cur_d, nxt.normal[keep], nxt.geo_normal[keep])
         if len(act) == 0:
             break
@@ -218,6 +239,41 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
     if split:
         res.branch_color = branches.trace(tracer, material, shade, n, max_events)
     return res
+
+
+@dataclass
+class SurfaceEvent:
+    """One reflection or refraction of N rays: the direction leaving, the event kind (REFLECT
+    or REFRACT), whether it was a total internal reflection, the side the ray met (``inside``:
+    in the glass) and the side it leaves on (``inside_after``), the refraction normal ``n_t``
+    and ``eta`` = n_from / n_to (glass and dielectric; None on a mirror)."""
+
+    out_dir: np.ndarray
+    kind: np.ndarray
+    tir: np.ndarray
+    inside: np.ndarray
+    inside_after: np.ndarray
+    n_t: np.ndarray | None
+    eta: np.ndarray | None
+
+
+def surface_event(tracer, material: ObjectMaterial, d, nrm, geo, back, patch,
+                  inside) -> SurfaceEvent:
+    """The event of rays ``d`` (N, 3) meeting patches ``patch`` with ``oriented`` shading
+    ``nrm`` and geometric ``geo`` normals (``back``: met from behind): a mirror reflects; glass
+    refracts (total internal reflection past the critical angle), in the glass where the ray
+    met a mesh's back (whatever it crossed before) or, on NURBS, by the parity ``inside``."""
+    n = len(d)
+    if material.kind == "mirror":
+        none = np.zeros(n, bool)
+        return SurfaceEvent(reflect(d, event_normal(d, nrm, geo)), np.full(n, REFLECT), none,
+                            inside, inside, None, None)
+    inside = np.where(tracer.is_mesh[patch], back, inside)
+    eta = np.where(inside, float(material.ior), 1.0 / float(material.ior))
+    n_t = event_normal(d, nrm, geo, eta)
+    out, tir = refract(d, n_t, eta)
+    return SurfaceEvent(out, np.where(tir, REFLECT, REFRACT), tir, inside, inside ^ ~tir, n_t,
+                        eta)
 
 
 class _Branches:

@@ -31,6 +31,7 @@ import numpy as np
 from ..scene.model import Mesh, SpecularObject
 from .hits import PatchHit
 from .meshes import MeshSet
+from .meshwalk import edge_neighbours
 from .newton import (MAX_STEP, NEWTON_BLOCK, NEWTON_ITERS, NEWTON_TOL_REL, hull_meets, project_nets,
                      ray_planes, newton, second_derivative_bounds)
 from .proxy import Proxy
@@ -138,6 +139,12 @@ class PatchTracer:
         """The object's occlusion proxy (trace.proxy.Proxy), built on first use and kept: every
         query over this tracer shares it."""
         return Proxy.of(self)
+
+    @cached_property
+    def mesh_neighbours(self) -> np.ndarray:
+        """(T, 3) the triangle across each edge of the mesh patches' triangles
+        (``meshwalk.edge_neighbours``), built on first use: walks on the meshes start here."""
+        return edge_neighbours(self.meshes.faces)
 
     def normalized_uv(self, patch, u, v) -> np.ndarray:
         """(N, 2) hit parameters (u, v) of patches ``patch`` (-1: a miss, 0 there) divided into

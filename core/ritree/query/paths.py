@@ -6,8 +6,9 @@ same reflections, refractions and total internal reflections. The tree stores ea
 sample's path seeds (tree layout 6: the first hit's normalized patch parameters and those of
 the next RECORDED_EVENTS events), so the ray is solved event by event along the path of its
 nearest sample of its class (then of the nearest with another path, CANDIDATE_PATHS in all):
-Newton on the patch the path visits from that sample's parameters there (``trace.polish``),
-each event's kind decided by the law at the solved point. The answer is kept only where
+Newton on the patch the path visits from that sample's parameters there (``trace.polish``;
+on a mesh patch a walk from the triangle the sample met there, ``meshpaths``), each event's
+kind decided by the law at the solved point, as the tracer decides it (``surface_event``). The answer is kept only where
 
 - every event converged near its seed (``CHAIN_MAX_MOVE_REL``, ``CHAIN_MOVE_PER_OFFSET``,
   ``CHAIN_MAX_TURN_DEG``),
@@ -33,13 +34,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...trace.objectfn import (REFLECT, REFRACT, SECONDARY_T_MIN_REL, TREE_HASH_SEED,
-                               fresnel_dielectric, one_reflection_hash, reflect, refract,
-                               tree_hash_step)
+from ...trace.eventnormal import event_normal, oriented
+from ...trace.objectfn import (SECONDARY_T_MIN_REL, TREE_HASH_SEED, fresnel_dielectric,
+                               one_reflection_hash, reflect, surface_event, tree_hash_step)
 from ...trace.patches import PatchHit
 from ...trace.polish import Seeds, polish_hits
 from ...trace.proxy import GRAZING_SINE
 from ..answers import COL, SOLVED, TRACED, WHY_PATH, WHY_TOLERANCE, WHY_UNSAMPLED, WHY_USABLE
+from .meshpaths import mesh_event_hits
 from .sets import N_CORNERS, corner_weights
 
 # Each event's Newton root is kept only within this distance of its seed's surface point
@@ -179,6 +181,7 @@ def chain(q, b, rays, sid, uvs, max_move) -> None:
     tab, tracer, mat = q.table, q.st.tracer, q.material
     patches = np.concatenate([tab.patch[sid, None].astype(np.int64),
                               tab.ev_patch[sid].astype(np.int64)], axis=1)     # (n, E)
+    own = _path_uvs(tab, sid)            # on a mesh patch: the sample's triangle
     n_ev = np.sum(patches >= 0, axis=1)
     n = len(rays)
     alive = np.ones(n, bool)
@@ -195,34 +198,30 @@ def chain(q, b, rays, sid, uvs, max_move) -> None:
         act = np.flatnonzero(alive & (e < n_ev))
         if len(act) == 0:
             break
-        on = tracer.piece_base[patches[act, e]] >= 0    # a NURBS patch (a known hit may not be)
         seeds = Seeds(patches[act, e], uvs[act, e].astype(np.float64), None, None)
         tmax = b.tmax[rays[act]] if e == 0 else np.full(len(act), np.inf)
         hit = polish_hits(tracer, cur_o[act], cur_d[act], seeds, max_move[act], min_cos,
                           floor[act], tmax)
+        mesh_event_hits(tracer, patches[act, e], own[act, e].astype(np.float64), cur_o[act],
+                        cur_d[act], floor[act], tmax, max_move[act], min_cos, hit)
         if e == 0:
             _known_first_hits(b, rays[act], patches[act, 0], hit)
-        ok = hit.hit & on
+        ok = hit.hit
         alive[act[~ok]] = False
         act, hit = act[ok], hit.take(np.flatnonzero(ok))
         if e == 0:
             first.put(act, hit)
-        nrm = np.where((np.einsum("ij,ij->i", hit.normal, cur_d[act]) > 0)[:, None],
-                       -hit.normal, hit.normal)
         d_in = cur_d[act]
-        if mat.kind == "mirror":
-            new_d, kind = reflect(d_in, nrm), np.full(len(act), REFLECT)
-        else:
-            eta = np.where(inside[act], mat.ior, 1.0 / mat.ior)
-            new_d, tir = refract(d_in, nrm, eta)
-            kind = np.where(tir, REFLECT, REFRACT)
-            if e == 0 and mat.kind == "dielectric":
-                fresnel[act] = fresnel_dielectric(-np.einsum("ij,ij->i", d_in, nrm), eta)
-                refl_dir[act] = reflect(d_in, nrm)
-            inside[act] ^= ~tir
-        h[act] = tree_hash_step(h[act], hit.patch, kind)
+        nrm, geo, back = oriented(d_in, hit.normal, hit.geo_normal)
+        ev = surface_event(tracer, mat, d_in, nrm, geo, back, hit.patch, inside[act])
+        new_d = ev.out_dir
+        if e == 0 and mat.kind == "dielectric":
+            fresnel[act] = fresnel_dielectric(-np.einsum("ij,ij->i", d_in, nrm), ev.eta)
+            refl_dir[act] = reflect(d_in, event_normal(d_in, nrm, geo))
+        inside[act] = ev.inside_after
+        h[act] = tree_hash_step(h[act], hit.patch, ev.kind)
         cur_o[act], cur_d[act] = hit.point, new_d
-        pts[act, e], nrms[act, e], dirs[act, e] = hit.point, nrm, new_d
+        pts[act, e], nrms[act, e], dirs[act, e] = hit.point, geo, new_d
     good = np.flatnonzero(alive & (h.astype(np.uint32) == tab.tree[sid]))
     searched = b.known.pos[rays[good]] >= 0     # first hit from the full search: the nearest
     good = good[~_crossed(q, b.o[rays[good]], b.d[rays[good]], pts[good], nrms[good],
