@@ -191,7 +191,7 @@ def trace_object(tracer: PatchTracer, material: ObjectMaterial, origins, dirs,
                      uv=tracer.normalized_uv(first.patch, first.u, first.v),
                      out_weight=np.ones(n), branch_color=np.zeros((n, 3)))
     split = shade is not None and material.kind == "dielectric"
-    branches = _Branches()
+    branches = FresnelBranches()
     res.normal, _, _ = oriented(d, first.normal, first.geo_normal)
     if record is not None:
         record.first_uv[:] = recorded_params(tracer, first.patch, first)
@@ -276,9 +276,10 @@ def surface_event(tracer, material: ObjectMaterial, d, nrm, geo, back, patch,
                         eta)
 
 
-class _Branches:
+class FresnelBranches:
     """The reflections a dielectric's output chain leaves behind at its crossings after the
-    first, and the Fresnel tree that follows them."""
+    first, and the Fresnel tree that follows them (trace_object, and the RI-Tree query's
+    chains solved along a sample's path)."""
 
     def __init__(self):
         self.parts = []
@@ -297,15 +298,20 @@ class _Branches:
             self.parts.append((rows[k], pts[k], reflect(d[k], event_normal(d[k], nrm[k], geo[k])),
                                w[k], inside[k], np.full(len(k), used)))
 
-    def trace(self, tracer, material, shade, n: int, max_events: int) -> np.ndarray:
-        """(n, 3): the colour the branches' leaving rays carry, summed per input ray: at each
-        crossing a branch splits into a reflection (weight F) and a refraction (1 - F; none past
-        the critical angle), each followed while its weight is at least FRESNEL_MIN_WEIGHT; a
-        branch still hitting after ``max_events`` events is trapped and carries nothing."""
+    def trace(self, tracer, material, shade, n: int, max_events: int,
+              keep=None) -> np.ndarray:
+        """(n, 3): the colour the branches' leaving rays carry, summed per input ray (only
+        those ``keep`` (n,) bool marks, if given): at each crossing a branch splits into a
+        reflection (weight F) and a refraction (1 - F; none past the critical angle), each
+        followed while its weight is at least FRESNEL_MIN_WEIGHT; a branch still hitting after
+        ``max_events`` events is trapped and carries nothing."""
         color = np.zeros((n, 3))
         if not self.parts:
             return color
         rows, o, d, w, inside, used = (np.concatenate(x) for x in zip(*self.parts))
+        if keep is not None:
+            k = np.flatnonzero(keep[rows])
+            rows, o, d, w, inside, used = rows[k], o[k], d[k], w[k], inside[k], used[k]
         ior, t_min2 = float(material.ior), SECONDARY_T_MIN_REL * tracer.diag
         while len(rows):
             h = tracer.intersect(o, d, tmin=np.full(len(o), t_min2))

@@ -39,10 +39,10 @@ def smooth_sphere(n_lat, n_lon, cap_rows=0):
     return verts, tris, verts[tris]
 
 
-def glass_mesh(cap_rows):
+def glass_mesh(cap_rows, kind="glass"):
     verts, tris, nrm = smooth_sphere(16, 32, cap_rows)
     obj = SpecularObject("m", [Patch("m", 0, vertices=verts, triangles=tris, normals=nrm)],
-                         ObjectMaterial(kind="glass", ior=1.5))
+                         ObjectMaterial(kind=kind, ior=1.5))
     st = SceneTracer(Scene(objects=[obj], render=RenderSettings(max_events=8)))
     cells = np.zeros((6, 8, 8), bool)
     cells[5, 2:6, 2:6] = True                       # the middle of the box's top face
@@ -95,3 +95,18 @@ def test_mesh_rays_are_solved_as_traced(name, request):
         assert len(np.unique(ex.events[solved])) >= 4 and res.null[solved].any()
     traced = ans == TRACED
     assert np.array_equal(res.hit[traced], ex.hit[traced])
+
+
+def test_solved_dielectric_rays_carry_the_traced_fresnel_tree():
+    """A dielectric bowl: a solved ray's output ray keeps the traced share of the light and
+    its Fresnel tree's other branches the traced colour (the environment's), as exact
+    rendering traces them."""
+    st, tree = glass_mesh(3, "dielectric")
+    o, d = down_rays(st, 1500, 6)
+    res, ans, _, _ = TreeQuery(tree, st, REFUSE_ALL)(o, d)
+    ex = st.object_function(o, d, fresnel_tree=True)
+    solved = np.flatnonzero(ans == SOLVED)
+    assert len(solved) > 0.5 * ex.hit.sum()
+    assert np.abs(res.out_weight[solved] - ex.out_weight[solved]).max() < TOL
+    assert np.abs(res.branch_color[solved] - ex.branch_color[solved]).max() < TOL
+    assert np.any(res.out_weight[solved] < 1.0) and np.any(res.branch_color[solved] > 0)

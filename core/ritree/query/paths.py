@@ -35,8 +35,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...trace.eventnormal import event_normal, oriented
-from ...trace.objectfn import (SECONDARY_T_MIN_REL, TREE_HASH_SEED, fresnel_dielectric,
-                               one_reflection_hash, reflect, surface_event, tree_hash_step)
+from ...trace.objectfn import (SECONDARY_T_MIN_REL, TREE_HASH_SEED, FresnelBranches,
+                               fresnel_dielectric, one_reflection_hash, reflect, surface_event,
+                               tree_hash_step)
 from ...trace.patches import PatchHit
 from ...trace.polish import Seeds, polish_hits
 from ...trace.proxy import GRAZING_SINE
@@ -142,7 +143,8 @@ def one_reflection(q, b) -> None:
             Chains(oo=first.point[keep], od=out[keep], null=np.zeros(n, bool),
                    events=np.ones(n, np.int64),
                    tree=one_reflection_hash(first.patch[keep]),
-                   fresnel=np.zeros(n), refl_dir=np.zeros((n, 3))))
+                   fresnel=np.zeros(n), refl_dir=np.zeros((n, 3)), out_weight=np.ones(n),
+                   branch_color=np.zeros((n, 3))))
 
 
 def sample_weights(q, loc, pc):
@@ -192,6 +194,7 @@ def chain(q, b, rays, sid, uvs, max_move) -> None:
     floor = np.full(n, SECONDARY_T_MIN_REL * tracer.diag)
     min_cos = np.cos(np.radians(CHAIN_MAX_TURN_DEG))
     fresnel, refl_dir = np.zeros(n), np.zeros((n, 3))
+    out_weight, branches = np.ones(n), FresnelBranches()    # a dielectric's Fresnel tree
     n_max = patches.shape[1]
     pts, nrms, dirs = (np.zeros((n, n_max, 3)) for _ in range(3))
     for e in range(n_max):
@@ -218,6 +221,9 @@ def chain(q, b, rays, sid, uvs, max_move) -> None:
         if e == 0 and mat.kind == "dielectric":
             fresnel[act] = fresnel_dielectric(-np.einsum("ij,ij->i", d_in, nrm), ev.eta)
             refl_dir[act] = reflect(d_in, event_normal(d_in, nrm, geo))
+        if e > 0 and mat.kind == "dielectric":
+            branches.split(act, hit.point, d_in, nrm, geo, ev.n_t, ev.eta, ev.tir, ev.inside,
+                           e + 1, out_weight)
         inside[act] = ev.inside_after
         h[act] = tree_hash_step(h[act], hit.patch, ev.kind)
         cur_o[act], cur_d[act] = hit.point, new_d
@@ -236,10 +242,15 @@ def chain(q, b, rays, sid, uvs, max_move) -> None:
         good = np.concatenate([good[null], out[~_hits_again(q, cur_o[out], cur_d[out], last)]])
     null = tab.null[sid[good]]
     cur_d[good[null]] = 0.0
+    kept = np.zeros(n, bool)
+    kept[good] = True
+    color = branches.trace(tracer, mat, q.st.env.shade_rays, n, q.st.scene.render.max_events,
+                           kept)
     _answer(q, b, rays[good], first.take(good),
             Chains(oo=cur_o[good], od=cur_d[good], null=null, events=n_ev[good],
                    tree=h[good].astype(np.uint32), fresnel=fresnel[good],
-                   refl_dir=refl_dir[good]))
+                   refl_dir=refl_dir[good], out_weight=out_weight[good],
+                   branch_color=color[good]))
 
 
 def _hits_again(q, o, d, n) -> np.ndarray:
@@ -297,7 +308,8 @@ def _known_first_hits(b, rows, patch, hit: PatchHit) -> None:
 class Chains:
     """What the solved chains of n rays leave: output origin and direction (n, 3; a trapped
     ray's origin its last hit, its direction zero, as the tracer answers it), trapped or not,
-    events, ray-tree hash, and a dielectric's Fresnel weight and reflected direction."""
+    events, ray-tree hash, a dielectric's Fresnel weight and reflected direction, and its
+    Fresnel tree's share on the output ray and other branches' colour (ObjectRays)."""
 
     oo: np.ndarray
     od: np.ndarray
@@ -306,6 +318,8 @@ class Chains:
     tree: np.ndarray
     fresnel: np.ndarray
     refl_dir: np.ndarray
+    out_weight: np.ndarray
+    branch_color: np.ndarray
 
 
 def _answer(q, b, rows, first: PatchHit, ch: Chains) -> None:
@@ -321,6 +335,7 @@ def _answer(q, b, rows, first: PatchHit, ch: Chains) -> None:
     res.patch[rows], res.cls[rows] = first.patch, q.st.tracer.class_of[first.patch]
     res.events[rows], res.tree[rows] = ch.events, ch.tree
     res.fresnel[rows], res.refl_dir[rows] = ch.fresnel, ch.refl_dir
+    res.out_weight[rows], res.branch_color[rows] = ch.out_weight, ch.branch_color
     res.uv[rows] = q.st.tracer.normalized_uv(first.patch, first.u, first.v)
     b.ans[rows] = SOLVED
     b.why[rows] = 0
