@@ -1,13 +1,16 @@
 """Render engine "RI-Tree Preview" (bl_idname RIRAY): the scene camera's view, F12 /
 bpy.ops.render.render (stills and animations), independent of any viewport.
 
-Per frame: export the scene from the render depsgraph (export.export_scene), make the core
-SceneTracer, then render shares of pixels through core's frame pipeline (render/frame.py:
-``shade_share``); the object's rays are answered by the baked RI-Tree (backend.tree_answerer)
-when a fresh tree exists and loads, else traced exactly (the user is told;
-scene.riray.allow_tracing = False turns that into an error). The object's tracer, the environment and the loaded tree are kept between frames and
-renders while what they are built from is unchanged (reuse.py); the stats say what each frame
-exported, built and reused.
+Per frame: export the scene from the render depsgraph (export.export_scene) with every
+specular object (export.specular_objects: marked RI-Tree Object, or with a sharp glass or
+mirror material), make one core SceneTracer per object, then render shares of pixels through
+core's frame pipeline (render/frame.py: ``shade_share``, the nearest object winning and the
+rays leaving one meeting the others); each object's rays are answered by its own baked
+RI-Tree (backend.tree_answerer) when a fresh tree exists and loads, else traced exactly (the
+user is told, object by object; scene.riray.allow_tracing = False turns that into an error).
+Each object's tracer and loaded tree and the environment are kept between frames and renders
+while what they are built from is unchanged (reuse.py); the stats say what each frame
+exported, built and reused, and each object's traced share.
 scene.riray.samples camera rays per pixel (core render/film.py: one is the pixel centre; more
 are stratified and filtered with Blackman-Harris, 1.5 px, as Cycles does).
 Passes: Combined, "Traced" (the fraction of a pixel's samples that fell back to
@@ -32,12 +35,12 @@ import numpy as np
 
 from ..core.parallel import map_chunks
 from ..core.render.film import Film
-from ..core.render.frame import ExactAnswerer, shade_share, share_size
+from ..core.render.frame import ExactAnswerer, Specular, shade_share, share_size
 from ..core.ritree.answers import OUTSIDE, is_traced
 from ..core.trace.patches import PatchTracer
 from ..core.trace.scene_tracer import SceneTracer, build_environment
 from . import backend, cache, reuse
-from .export import export_camera, export_scene, specular_fingerprint
+from .export import export_camera, export_scene, specular_fingerprint, specular_objects
 from .properties import query_options
 from .report import ExportError, Report
 
@@ -48,14 +51,6 @@ ENGINE_ID = "RIRAY"
 SHARES_PER_WORKER = 4
 # The last frame rendered by this process (numpy arrays, top row first): tests and scripts.
 LAST_RENDER: dict = {}
-
-
-def resolve_target(scene):
-    """The specular object: scene.riray.target, else the only visible SURFACE object."""
-    if scene.riray.target is not None:
-        return scene.riray.target
-    surfaces = [o for o in scene.objects if o.type == "SURFACE" and not o.hide_render]
-    return surfaces[0] if len(surfaces) == 1 else None
 
 
 class _Cancelled(Exception):
@@ -107,33 +102,41 @@ class RirayRenderEngine(bpy.types.RenderEngine):
     def _render(self, depsgraph):
         scene, view_layer = depsgraph.scene, depsgraph.view_layer
         t_start = time.perf_counter()
-        target, core_scene = self._export(depsgraph)
+        targets, core_scene = self._export(depsgraph)
         export_s = time.perf_counter() - t_start
         region = render_region(scene.render, int(self.resolution_x), int(self.resolution_y))
         w, h = region[2:]
         frame_parts = reuse.FrameParts(reuse.MEMO)
-        obj_key = reuse.object_key(core_scene.object)
-        tracer = frame_parts.get("object", lambda: obj_key,
-                                 lambda: PatchTracer(core_scene.object))
-        env = frame_parts.get("environment", lambda: reuse.environment_key(core_scene, obj_key),
+        keys = [reuse.object_key(o) for o in core_scene.objects]
+        shadow_key = keys[0] if len(keys) == 1 else reuse.fingerprint(keys)
+        env = frame_parts.get("environment", lambda: reuse.environment_key(core_scene, shadow_key),
                               lambda: build_environment(core_scene))
-        st = SceneTracer(core_scene, tracer=tracer, env=env)
-        answerer, status = self._answerer(depsgraph, target, st, frame_parts, obj_key)
+        objs, statuses = [], []
+        for i, (target, key) in enumerate(zip(targets, keys)):
+            kind = part_kind(i, target.name)
+            tracer = frame_parts.get(f"object{kind}", lambda: key,
+                                     lambda: PatchTracer(core_scene.objects[i]))
+            st = SceneTracer(core_scene.view(i), tracer=tracer, env=env)
+            answerer, status = self._answerer(depsgraph, target, st, frame_parts, key, kind)
+            objs.append(Specular(st, answerer))
+            statuses.append(status)
         build_s = time.perf_counter() - t_start - export_s
         film = region_film(core_scene.cameras[0], int(self.resolution_x),
                            int(self.resolution_y), region, scene.riray.samples)
-        want_angle = bool(view_layer.riray.use_pass_angle_error) and answerer is not None
-        answerer = answerer or ExactAnswerer(st)
+        want_angle = bool(view_layer.riray.use_pass_angle_error) and any(
+            o.answerer is not None for o in objs)
+        through = [o.answerer is not None for o in objs]
+        objs = [Specular(o.st, o.answerer or ExactAnswerer(o.st)) for o in objs]
 
         def work(a, b):
             """One share of rays: its pixels' colour, traced and angle sums; object time and
-            ray counts."""
+            ray counts per object."""
             rays = film.rays(a, b)
-            share = shade_share(st, *rays, answerer)
-            color, tr, ang, obj_s, hits, outside = _passes(st, share, rays, want_angle)
+            share = shade_share(objs[0].st, *rays, objs[0].answerer, objs[1:])
+            color, tr, ang, counts = _passes(objs, share, rays, want_angle)
             part = film.develop(a, b, {"color": color}, {"traced": tr, "angle": ang})
-            return (part, obj_s, hits, int(tr.sum()), share.stats.get("solved_along_path", 0),
-                    outside)
+            return part, share.stats["object_cpu_s"], share.stats.get("solved_along_path", 0), \
+                counts
 
         t_render = time.perf_counter()
         procs = render_processes(scene.riray.render_processes)
@@ -148,8 +151,11 @@ class RirayRenderEngine(bpy.types.RenderEngine):
         color = dev.images["color"].reshape(-1, 3)
         traced, angle = ((dev.box[k].ravel() / film.samples).astype(np.float32)
                          for k in ("traced", "angle"))
-        hits, n_traced = sum(p[2] for p in parts), sum(p[3] for p in parts)
-        solved, outside = sum(p[4] for p in parts), sum(p[5] for p in parts)
+        counts = np.sum([p[3] for p in parts], axis=0) if parts else np.zeros((len(objs), 3))
+        hits, n_traced, outside = (int(x) for x in counts.sum(axis=0))
+        solved = sum(p[2] for p in parts)
+        per_object = {t.name: object_stats(c, ok, st["state"])
+                      for t, c, ok, st in zip(targets, counts, through, statuses)}
         stats = {"frame": scene.frame_current, "width": w, "height": h,
                  "samples": film.samples, "object_pixels": hits, "traced_pixels": n_traced,
                  "traced_fraction": n_traced / hits if hits else 0.0,
@@ -158,52 +164,56 @@ class RirayRenderEngine(bpy.types.RenderEngine):
                  "object_time_s": sum(p[1] for p in parts),
                  "render_time_s": time.perf_counter() - t_render, "export_s": export_s,
                  "build_s": build_s, "build_parts_s": frame_parts.seconds,
-                 "reused": frame_parts.reused, "tree": status["state"],
-                 "mode": "exact" if isinstance(answerer, ExactAnswerer) else "tree",
+                 "reused": frame_parts.reused, "objects": per_object,
+                 "tree": _common(o["tree"] for o in per_object.values()),
+                 "mode": _common(o["mode"] for o in per_object.values()),
                  "processes": procs}
         self._write((color, traced, angle), region, stats)
         self.update_stats("", status_line(stats))
-        if outside:
-            self.report({"WARNING"}, outside_message(target.name, core_scene.cameras[0].name,
-                                                     stats))
+        for name, o in per_object.items():
+            if o["outside_fraction"]:
+                self.report({"WARNING"}, outside_message(
+                    name, core_scene.cameras[0].name, {**o, "frame": stats["frame"]}))
 
     def _export(self, depsgraph):
-        """(the specular object, the core scene with the render camera); ExportError if the
+        """(the specular objects, the core scene with the render camera); ExportError if the
         scene has none of either."""
         scene = depsgraph.scene
-        target = resolve_target(scene)
-        if target is None:
-            raise ExportError("no object to render: set the RI-Tree object in Render Properties "
-                              "> RI-Tree (or bake one)")
+        targets = specular_objects(depsgraph)
+        if not targets:
+            raise ExportError("no specular object to render: give an object a sharp glass or "
+                              "mirror material, or tick RI-Tree Object in its Object "
+                              "Properties > Bake RI-Tree panel")
         cam_obj = self.camera_override or scene.camera
         if cam_obj is None:
             raise ExportError("the scene has no camera")
         self.update_stats("", "RI-Tree Preview: exporting scene")
         report = Report()
-        core_scene = export_scene(depsgraph, target, report, cameras="NONE")
+        core_scene = export_scene(depsgraph, targets, report, cameras="NONE")
         core_scene.cameras = [export_camera(cam_obj.evaluated_get(depsgraph), scene, report)]
         if cam_obj.type == "CAMERA" and cam_obj.data.dof.use_dof:
             report.warning(f"camera {cam_obj.name}: depth of field is not rendered (everything "
                            "is in focus)")
         report.emit(self.report, "WARNING")
-        return target, core_scene
+        return targets, core_scene
 
-    def _answerer(self, depsgraph, target, st, frame_parts, obj_key):
+    def _answerer(self, depsgraph, target, st, frame_parts, obj_key, kind=""):
         """(the tree's answerer, or None to trace the object exactly; the cache status). The
         loaded tree comes from ``frame_parts`` (reuse.py: kept while the file and the object,
-        ``obj_key``, are unchanged), with the occlusion proxy of the object's tracer."""
+        ``obj_key``, are unchanged; ``kind``: the object's part_kind), with the occlusion
+        proxy of the object's tracer."""
         status = cache.tree_status(target, depsgraph, memo=False,
                                    current=specular_fingerprint(st.scene.object))
         how = status["message"]
         if status["state"] == "fresh":
             path, options = status["path"], query_options(target)
             try:
-                tree = frame_parts.get("tree", lambda: reuse.tree_key(path, obj_key),
+                tree = frame_parts.get(f"tree{kind}", lambda: reuse.tree_key(path, obj_key),
                                        lambda: backend.load_tree(path)[0])
                 if options["solve_paths"]:      # kept on the tracer (a cached_property)
-                    frame_parts.timed("proxy", lambda: st.tracer.occlusion_proxy,
+                    frame_parts.timed(f"proxy{kind}", lambda: st.tracer.occlusion_proxy,
                                       reused="occlusion_proxy" in vars(st.tracer))
-                return frame_parts.timed("query", lambda: backend.tree_answerer(
+                return frame_parts.timed(f"query{kind}", lambda: backend.tree_answerer(
                     st, tree, options)), status
             except (backend.TreeCacheError, OSError) as exc:   # damaged, gone, not this object's
                 how = f"the RI-Tree cache cannot be used ({exc})" + (
@@ -264,6 +274,10 @@ def status_line(stats: dict) -> str:
     if stats["outside_fraction"]:
         extra += f" | outside the baked region {100 * stats['outside_fraction']:.1f}%"
     reused = ", ".join(stats["reused"]) or "nothing"
+    objects = stats.get("objects", {})
+    if len(objects) > 1:
+        extra = " (" + ", ".join(f"{name} {100 * o['traced_fraction']:.1f}%"
+                                 for name, o in objects.items()) + ")" + extra
     return (f"RI-Tree Preview | traced {100 * stats['traced_fraction']:.1f}% of {hits} object "
             f"pixels{extra} | object {stats['object_time_s']:.2f} s | render "
             f"{stats['render_time_s']:.2f} s | export {stats['export_s']:.2f} s | build "
@@ -287,24 +301,49 @@ def region_film(camera, width: int, height: int, region, samples: int) -> Film:
     return Film(camera, width, height, samples, (x0, height - y0 - h, w, h))
 
 
-def _passes(st, share, rays, want_angle: bool):
+def part_kind(index: int, name: str) -> str:
+    """The suffix of a specular object's parts in reuse.MEMO: none for the first object (a
+    scene of one keeps the names "object", "tree", ...), " [NAME]" for the others."""
+    return "" if index == 0 else f" [{name}]"
+
+
+def _common(values) -> str:
+    """The one value of ``values``, or "mixed" when they differ."""
+    values = set(values)
+    return values.pop() if len(values) == 1 else "mixed"
+
+
+def object_stats(counts, through_tree: bool, tree_state: str) -> dict:
+    """One specular object's share of a frame from its (pixels, traced, outside the baked
+    region) ray counts."""
+    hits, traced, outside = (int(x) for x in counts)
+    return {"object_pixels": hits, "traced_pixels": traced,
+            "traced_fraction": traced / hits if hits else 0.0,
+            "outside_fraction": outside / hits if hits else 0.0,
+            "mode": "tree" if through_tree else "exact", "tree": tree_state}
+
+
+def _passes(objs, share, rays, want_angle: bool):
     """A rendered share's pass values: (colour, traced flag, angle error in degrees against
-    exact tracing when ``want_angle``, object CPU seconds, object rays, object rays outside the
-    tree's region)."""
+    exact tracing when ``want_angle``, (objects, 3) counts of each object's rays: those it is
+    the nearest hit of, traced, outside its tree's region)."""
     n = len(share.color)
     tr = np.zeros(n, np.float32)
     ang = np.zeros(n, np.float32)
-    hit, ans, outside = share.hit, share.answer, 0
-    if len(hit) and ans.answer is not None:
-        tr[hit] = is_traced(ans.answer)[ans.rays.hit]
-        outside = int(np.count_nonzero(ans.answer[ans.rays.hit] == OUTSIDE))
-        if want_angle:
-            used = ans.rays.take(ans.rays.hit)
-            exact = st.object_function(rays[0][hit], rays[1][hit])
+    counts = np.zeros((len(share.objects), 3), np.int64)
+    for k, (obj, o) in enumerate(zip(objs, share.objects)):
+        hit, codes = o.hit, o.answer.answer
+        if codes is None:
+            tr[hit] = 1.0
+            counts[k] = len(hit), len(hit), 0
+            continue
+        tr[hit] = is_traced(codes)[o.won]
+        counts[k] = len(hit), int(tr[hit].sum()), np.count_nonzero(codes[o.won] == OUTSIDE)
+        if want_angle and len(hit):
+            used = o.answer.rays.take(o.won)
+            exact = obj.st.object_function(rays[0][hit], rays[1][hit])
             ang[hit] = angle_error_deg(used.out_dir, exact.out_dir, used.null, exact.null)
-    elif len(hit):
-        tr[hit] = 1.0
-    return share.color, tr, ang, share.stats["object_cpu_s"], len(hit), outside
+    return share.color, tr, ang, counts
 
 
 # Built-in panels that show for every engine (they list BLENDER_RENDER) but whose settings

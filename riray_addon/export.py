@@ -1,6 +1,7 @@
 """Blender data -> core Scene (world space, metres, linear RGB).
 
-    export_scene(depsgraph, target, report)   the whole scene: object + environment + cameras
+    export_scene(depsgraph, target, report)   the whole scene: object(s) + environment + cameras
+    specular_objects(depsgraph)               the objects rendered as specular objects
     export_object(obj, depsgraph, report)     the specular object alone (what the tree bakes)
     spline_surfaces(obj_eval)                 exact NURBS of a SURFACE object, object space
     object_fingerprint(obj, depsgraph)        hash of what a bake depends on (staleness)
@@ -40,6 +41,7 @@ from .report import ExportError, Report
 
 # Object types whose evaluated mesh can be the specular object or part of the environment.
 MESH_LIKE = {"MESH", "CURVE", "SURFACE", "META", "FONT"}
+SPECULAR_TYPES = {"SURFACE", "MESH", "CURVE", "META"}   # object types a specular object can be
 # A matrix this close to the identity counts as identity (object texture coordinates).
 IDENTITY_TOL = 1e-9
 # Fingerprint grid: world coordinates are hashed in units of this fraction of the object's box
@@ -363,7 +365,7 @@ def export_object(obj, depsgraph, report: Report | None = None) -> SpecularObjec
     if obj.type == "FONT":
         raise ExportError(f"{obj.name}: text objects cannot be the specular object; convert "
                           "it to a mesh or curve first (Object > Convert)")
-    if obj.type not in {"SURFACE", "MESH", "CURVE", "META"}:
+    if obj.type not in SPECULAR_TYPES:
         kind = obj.type.lower().replace("_", " ")
         article = "an" if kind[0] in "aeiou" else "a"
         raise ExportError(f"{obj.name}: {article} {kind} object has no surface to export; "
@@ -543,24 +545,25 @@ def render_size(scene) -> tuple[int, int]:
 
 
 def export_environment(depsgraph, exclude, report: Report):
-    """(meshes, materials, lights, world) of everything the depsgraph renders but ``exclude``:
-    objects in enabled collections, not hidden for rendering, and their instances (collection
-    instances, particles, geometry-node instances), each with its own world matrix."""
+    """(meshes, materials, lights, world) of everything the depsgraph renders but ``exclude``
+    (an object or a list of them): objects in enabled collections, not hidden for rendering,
+    and their instances (collection instances, particles, geometry-node instances), each with
+    its own world matrix."""
     cam = depsgraph.scene.camera
     cam_matrix = matrix_np(cam.evaluated_get(depsgraph).matrix_world) if cam is not None \
         else None
     meshes, materials, lights = [], {}, []
     cache = matmap.EnvironmentMaterials(report, cam_matrix)
-    exclude_name = exclude.name if exclude is not None else None
+    excluded = {o.name for o in _as_list(exclude)}
     counts: dict[str, int] = {}
     for inst in depsgraph.object_instances:
         obj = inst.object
         orig = obj.original
         if inst.is_instance:
             parent = inst.parent.original if inst.parent is not None else None
-            if parent is not None and (parent.name == exclude_name or parent.hide_render):
+            if parent is not None and (parent.name in excluded or parent.hide_render):
                 continue
-        elif orig.name == exclude_name:
+        elif orig.name in excluded:
             continue
         if _hidden(obj):
             continue
@@ -581,14 +584,37 @@ def export_environment(depsgraph, exclude, report: Report):
     return meshes, materials, lights, world
 
 
+def _as_list(objs) -> list:
+    """``objs`` as a list: a list or tuple of objects, one object, or None (none)."""
+    return list(objs) if isinstance(objs, (list, tuple)) else [] if objs is None else [objs]
+
+
+def specular_objects(depsgraph) -> list:
+    """The objects the depsgraph renders as specular objects, by name: surface, mesh, curve
+    and metaball objects marked RI-Tree Object in their panel, or with a sharp glass or mirror
+    material in a slot (materials.is_sharp_specular), and the one object older files named in
+    scene.riray.target."""
+    legacy = depsgraph.scene.riray.target
+    out = []
+    for obj in depsgraph.objects:
+        orig = obj.original
+        if orig.type not in SPECULAR_TYPES or orig.hide_render:
+            continue
+        if orig.riray.specular or orig == legacy or any(
+                matmap.is_sharp_specular(slot.material) for slot in orig.material_slots):
+            out.append(orig)
+    return sorted(out, key=lambda o: o.name)
+
+
 def export_scene(depsgraph, target, report: Report | None = None, cameras: str = "ALL",
                  environment: bool = True) -> Scene:
-    """The core Scene: ``target`` as the specular object, every other visible object as the
-    environment, the scene camera first among the cameras (``cameras``: "ALL", "ACTIVE" or
-    "NONE"), the render size with the resolution percentage."""
+    """The core Scene: ``target`` (an object, or a list of objects) as the specular objects,
+    every other visible object as the environment, the scene camera first among the cameras
+    (``cameras``: "ALL", "ACTIVE" or "NONE"), the render size with the resolution
+    percentage."""
     report = report if report is not None else Report()
     scene = depsgraph.scene
-    obj = export_object(target, depsgraph, report)
+    objs = [export_object(t, depsgraph, report) for t in _as_list(target)]
     if environment:
         meshes, materials, lights, world = export_environment(depsgraph, target, report)
     else:
@@ -607,7 +633,7 @@ def export_scene(depsgraph, target, report: Report | None = None, cameras: str =
             names.add(c.name)
             cams.append(export_camera(c.evaluated_get(depsgraph), scene, report))
     w, h = render_size(scene)
-    return Scene(objects=[obj], meshes=meshes, materials=materials, lights=lights, world=world,
+    return Scene(objects=objs, meshes=meshes, materials=materials, lights=lights, world=world,
                  cameras=cams, render=RenderSettings(width=w, height=h,
                                                      max_events=int(scene.riray.max_events)),
                  name=scene.name)

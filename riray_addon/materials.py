@@ -342,6 +342,25 @@ def _highlight(mat, node) -> dict:
     return dict(specular=float(f0), shininess=roughness_shininess(r))
 
 
+def is_sharp_specular(mat) -> bool:
+    """Whether the Blender material ``mat`` is one a specular object renders (what makes an
+    object one without its panel's mark): its surface shader a Glass, Refraction or Glossy
+    BSDF, or a Principled BSDF with Transmission or Metallic of at least SNAP, sharp
+    (Roughness up to ROUGH_OK; rougher surfaces are environment, shaded with their lobe)."""
+    if mat is None:
+        return False
+    node = _surface_shader(compat.shader_tree(mat), _Ctx(Report(), mat.name))
+    if node is None:
+        return False
+    rough = _input(node, "Roughness")
+    if rough is not None and (rough.is_linked or float(rough.default_value) > ROUGH_OK):
+        return False
+    if node.type in ("BSDF_GLASS", "BSDF_REFRACTION", "BSDF_GLOSSY"):
+        return True
+    return node.type == "BSDF_PRINCIPLED" and max(
+        _value(node, "Transmission Weight", "Transmission"), _value(node, "Metallic")) >= SNAP
+
+
 def object_material(mat, report, owner: str = "") -> ObjectMaterial:
     """The specular object's ObjectMaterial from a Blender material (None: a mirror)."""
     name = f"{owner}: material {mat.name!r}" if mat is not None else owner

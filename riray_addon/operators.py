@@ -39,8 +39,6 @@ def target_object(context, name: str = ""):
         return obj
     obj = context.active_object if hasattr(context, "active_object") else None
     if obj is None:
-        obj = context.scene.riray.target
-    if obj is None:
         raise ExportError("no active object: select the NURBS surface to bake")
     return obj
 
@@ -161,8 +159,7 @@ def start_bake(context, obj, report: Report | None = None) -> BakeJob:
     path = cache.bake_target(obj)
     cache.check_writable(path)
     scene, params, meta = prepare_bake(context, obj, report)
-    if context.scene.riray.target is None:
-        context.scene.riray.target = obj
+    obj.riray.specular = True       # it renders through its tree; the others stay as they are
     try:
         job = BakeJob(obj.name, path).start(scene, params, meta, scheduler_address(context))
     except (OSError, ValueError) as exc:     # ValueError: core refuses the exported scene

@@ -1,7 +1,8 @@
 """Blender properties of the add-on (saved in the .blend).
 
-scene.riray      the target object, render options (fallback tracing, passes, max events)
-object.riray     bake parameters, cache file, per-spline class groups, bake bookkeeping
+scene.riray      render options (fallback tracing, passes, max events); older files' object
+object.riray     the RI-Tree Object mark, bake parameters, cache file, per-spline class
+                 groups, bake bookkeeping
 material.riray   "join splines/faces with this material into one class", highlight settings
 world.riray      ambient irradiance for the environment's diffuse shading
 view_layer.riray which extra passes the engine writes
@@ -81,6 +82,12 @@ class RIRAY_PG_spline_group(bpy.types.PropertyGroup):
 
 
 class RIRAY_PG_object(bpy.types.PropertyGroup):
+    specular: BoolProperty(name="RI-Tree Object", default=False,
+                           description="Render this object as a glass or mirror object, "
+                                       "through its own RI-Tree (objects with a sharp Glass, "
+                                       "Refraction, Glossy, or transmissive or metallic "
+                                       "Principled material are, without this mark; baking "
+                                       "an object marks it)")
     quality: EnumProperty(
         name="Quality",
         # The numbers are what a .blend stores: files saved when 1 was Default at depths 4 / 5
@@ -318,12 +325,15 @@ class RIRAY_PG_view_layer(bpy.types.PropertyGroup):
 
 
 class RIRAY_PG_scene(bpy.types.PropertyGroup):
+    # Files saved when a scene rendered one specular object name it here: that object is still
+    # rendered as one (export.specular_objects); not shown, nothing sets it.
     target: PointerProperty(name="Object", type=bpy.types.Object, poll=_poll_target,
-                            description="The reflective/refractive object rendered with its "
-                                        "RI-Tree (empty: the active object when baking)")
+                            description="The specular object of files saved by earlier "
+                                        "versions (rendered as one; each object's own RI-Tree "
+                                        "Object mark now says it)")
     allow_tracing: BoolProperty(name="Trace without tree", default=True,
-                                description="Trace the object exactly when it has no RI-Tree or "
-                                            "the tree is stale (else the render fails)")
+                                description="Trace an object exactly when it has no RI-Tree or "
+                                            "its tree is stale (else the render fails)")
     samples: IntProperty(name="Samples", default=Shot.samples, min=1, max=4096, soft_max=64,
                          description="Camera rays per pixel: 1 is the pixel centre; more "
                                      "smooth the edges (anti-aliasing), the render time "

@@ -12,6 +12,7 @@ import bpy
 from . import cache
 from .engine import ENGINE_ID
 from .jobs import format_bytes, format_duration
+from .materials import is_sharp_specular
 from .jobs import JOBS
 from .operators import estimate_key
 from .report import ExportError
@@ -31,7 +32,8 @@ def _job_line(layout, job) -> None:
 
 def draw_bake_panel(layout, context) -> None:
     """The object's "Bake RI-Tree" panel: quality, the bake / cancel and estimate rows, the
-    cache's state, cameras and cache file; the sub-panels hold the rest."""
+    cache's state, cameras, cache file and the RI-Tree Object mark; the sub-panels hold the
+    rest."""
     obj = context.object
     if obj is None or obj.type not in TARGET_TYPES:
         layout.label(text="Select a NURBS surface, mesh or curve object", icon="INFO")
@@ -46,6 +48,15 @@ def draw_bake_panel(layout, context) -> None:
     sub.active = p.bake_for_cameras
     sub.prop(p, "use_frame_range")
     layout.prop(p, "cache_file", text="Cache")
+    _draw_specular(layout, obj, p)
+
+
+def _draw_specular(layout, obj, p) -> None:
+    """The RI-Tree Object mark; when the object's material makes it one anyway, says so."""
+    row = layout.row()
+    row.prop(p, "specular")
+    if not p.specular and any(is_sharp_specular(s.material) for s in obj.material_slots):
+        row.label(text="(glass / mirror material)")
 
 
 def _draw_actions(layout, obj, p) -> None:
@@ -309,7 +320,6 @@ class RIRAY_PT_render(_EnginePanel, bpy.types.Panel):
         s = context.scene.riray
         layout = self.layout
         layout.use_property_split = True
-        layout.prop(s, "target")
         layout.prop(s, "allow_tracing")
         layout.prop(s, "samples")
         layout.prop(s, "render_processes")
@@ -320,6 +330,10 @@ class RIRAY_PT_render(_EnginePanel, bpy.types.Panel):
             layout.label(text=f"Last frame {st['frame']}: traced "
                               f"{100 * st['traced_fraction']:.1f}% of {st['object_pixels']} "
                               f"object pixels, {st['render_time_s']:.2f} s")
+            objects = st.get("objects", {})
+            for name, o in objects.items() if len(objects) > 1 else ():
+                layout.label(text=f"    {name}: traced {100 * o['traced_fraction']:.1f}% "
+                                  f"of {o['object_pixels']} ({o['mode']})")
 
 
 class RIRAY_PT_passes(_EnginePanel, bpy.types.Panel):

@@ -186,20 +186,21 @@ def test_render_errors_are_reported(bl, tmp_path):
         bpy.ops.render.render(write_still=True)
     scene.riray.allow_tracing = True
     scene.riray.target = None
+    obj.hide_render = True          # no object with a glass or mirror material is left
     bpy.ops.surface.primitive_nurbs_surface_torus_add(location=(3, 3, 0))
-    with pytest.raises(RuntimeError, match="no object to render"):
+    with pytest.raises(RuntimeError, match="no specular object to render"):
         bpy.ops.render.render(write_still=True)
     bpy.ops.object.text_add()
-    scene.riray.target = None
     txt = bpy.context.active_object
-    # a text object cannot be picked as the target (poll), an empty mesh gives a report
+    # a text object cannot be a specular object (poll), an empty mesh marked one gives a report
     me = bpy.data.meshes.new("empty")
     empty = bpy.data.objects.new("empty", me)
     scene.collection.objects.link(empty)
-    scene.riray.target = empty
+    empty.riray.specular = True
     with pytest.raises(RuntimeError, match="no faces"):
         bpy.ops.render.render(write_still=True)
-    scene.riray.target = obj
+    empty.riray.specular = False
+    obj.hide_render = False
     scene.camera = None
     with pytest.raises(RuntimeError, match="no camera"):
         bpy.ops.render.render(write_still=True)

@@ -51,7 +51,7 @@ def test_bake_panel_states(bl, tmp_path):
     log = []
     ui.draw_bake_panel(Layout(log), bpy.context)
     props = [x[1] for x in log if x[0] == "prop"]
-    assert props == ["quality", "bake_for_cameras", "use_frame_range", "cache_file"]
+    assert props == ["quality", "bake_for_cameras", "use_frame_range", "cache_file", "specular"]
     ops = [x[1] for x in log if x[0] == "operator"]
     assert ops == ["riray.bake", "riray.bake_clear", "riray.bake_estimate"]
     assert "Not baked" in _texts(log)
