@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from riray.ritree.bake import bake
+from riray.ritree.answers import is_interpolated
 from riray.ritree.query import SOLVED, TRACED, QueryOptions, TreeQuery
 from riray.ritree.region import Region
 from riray.ritree.tree import BakeParams
@@ -110,3 +111,23 @@ def test_solved_dielectric_rays_carry_the_traced_fresnel_tree():
     assert np.abs(res.out_weight[solved] - ex.out_weight[solved]).max() < TOL
     assert np.abs(res.branch_color[solved] - ex.branch_color[solved]).max() < TOL
     assert np.any(res.out_weight[solved] < 1.0) and np.any(res.branch_color[solved] > 0)
+
+
+def test_interpolated_dielectric_rays_are_solved_to_carry_the_fresnel_tree():
+    """With the tolerance off the tree interpolates a glass bowl's rays; a dielectric's are
+    solved along their samples' paths instead (the same answer as traced, Fresnel tree
+    included), where the chain is solved; the rest keep their interpolated answer."""
+    opts = QueryOptions(max_error_deg=None, fallback_angle_deg=None)
+    st, tree = glass_mesh(3)
+    o, d = down_rays(st, 1500, 7)
+    _, ans, _, _ = TreeQuery(tree, st, opts)(o, d)
+    interp = is_interpolated(ans)
+    assert interp.mean() > 0.5
+    st, tree = glass_mesh(3, "dielectric")
+    res, ans, _, _ = TreeQuery(tree, st, opts)(o, d)
+    ex = st.object_function(o, d, fresnel_tree=True)
+    assert np.mean(ans[interp] == SOLVED) > 0.8
+    solved = np.flatnonzero(ans == SOLVED)
+    assert np.array_equal(res.tree[solved], ex.tree[solved])
+    assert np.abs(res.out_weight[solved] - ex.out_weight[solved]).max() < TOL
+    assert np.abs(res.branch_color[solved] - ex.branch_color[solved]).max() < TOL

@@ -26,6 +26,11 @@ On a mirror, a ray still refused whose exact first hit the query found (the full
 a hit on a patch none of its samples hit) is then answered by its one reflection there where
 that reflection leaves the object (the proxy, and the exact tracer over the stretch next to the
 hit that the proxy does not look at). The others are traced.
+
+On a dielectric, the rays the tree interpolated are solved along their samples' paths too:
+the tree holds one output ray per ray, but at each crossing after the first the glass also
+reflects (the Fresnel tree, trace.objectfn), which a solved chain carries; where the chain is
+not solved the interpolated answer stays.
 """
 
 from __future__ import annotations
@@ -41,7 +46,8 @@ from ...trace.objectfn import (SECONDARY_T_MIN_REL, TREE_HASH_SEED, FresnelBranc
 from ...trace.patches import PatchHit
 from ...trace.polish import Seeds, polish_hits
 from ...trace.proxy import GRAZING_SINE
-from ..answers import COL, SOLVED, TRACED, WHY_PATH, WHY_TOLERANCE, WHY_UNSAMPLED, WHY_USABLE
+from ..answers import (COL, SOLVED, TRACED, WHY_PATH, WHY_TOLERANCE, WHY_UNSAMPLED, WHY_USABLE,
+                       is_interpolated)
 from .meshpaths import mesh_event_hits
 from .sets import N_CORNERS, corner_weights
 
@@ -73,17 +79,19 @@ def solve_paths(q, b) -> None:
     samples' of their class: tried in turn along the paths of the heaviest such sample (bilinear
     weights at both levels) and of the heaviest one with another path, up to CANDIDATE_PATHS;
     on a mirror, then the rays still refused whose exact first hit the query found, along
-    their own one-reflection path (``one_reflection``)."""
-    _sample_paths(q, b)
+    their own one-reflection path (``one_reflection``); on a dielectric, then the rays the
+    tree interpolated, along their samples' paths (module docstring)."""
+    _sample_paths(q, b, np.flatnonzero((b.ans == TRACED) & np.isin(b.why, SOLVABLE)))
     if q.material.kind == "mirror":
         with b.clock("paths"):
             one_reflection(q, b)
+    elif q.material.kind == "dielectric":
+        _sample_paths(q, b, np.flatnonzero(is_interpolated(b.ans)))
 
 
-def _sample_paths(q, b) -> None:
-    """The rays refused for SOLVABLE reasons, solved along their samples' paths (the first
-    part of ``solve_paths``)."""
-    rays = np.flatnonzero((b.ans == TRACED) & np.isin(b.why, SOLVABLE))
+def _sample_paths(q, b, rays) -> None:
+    """Query rays ``rays`` solved along their samples' paths (``solve_paths``); those not
+    solved keep their answer."""
     if len(rays) == 0 or b.loc is None or b.loc_pc is None:
         return
     with b.clock("paths"):
@@ -106,11 +114,11 @@ def _sample_paths(q, b) -> None:
             offset = np.linalg.norm(entry[k] - q.tree.vp_pos[vp], axis=1)
             chain(q, b, rays[k], sid, seed_uvs(q.table, ids[k], w[k], sid),
                   CHAIN_MAX_MOVE_REL * q.tree.diag + CHAIN_MOVE_PER_OFFSET * offset)
-            # the next candidate: another path, for the rays still traced
+            # the next candidate: another path, for the rays not solved yet
             tried = np.full(len(w), -1, np.int64)
             tried[k] = q.table.tree[sid]
             w[q.table.tree[ids] == tried[:, None]] = -1.0
-            w[b.ans[rays] != TRACED] = -1.0
+            w[b.ans[rays] == SOLVED] = -1.0
 
 
 def one_reflection(q, b) -> None:
