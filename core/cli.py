@@ -320,8 +320,10 @@ def cmd_trace_rays(args):
                            None if args.quiet else _progress("trace"))
         out = ObjectRays(**{k: np.concatenate([p.__dict__[k] for p in parts])
                             for k in parts[0].__dict__}) if parts else f(0, 0)
+    # f's arrays; a dielectric's Fresnel tree (out_weight, branch_color) is rendering's
+    arrays = {k: v for k, v in out.__dict__.items() if k not in ("out_weight", "branch_color")}
     with command_output():
-        atomic_write(out_path, lambda f: np.savez_compressed(f, **out.__dict__, **extra))
+        atomic_write(out_path, lambda f: np.savez_compressed(f, **arrays, **extra))
     print(f"{args.out}: {len(o)} rays, {int(out.hit.sum())} hit the object, "
           f"{int(out.null.sum())} null")
     return 0
