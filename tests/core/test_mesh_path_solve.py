@@ -3,6 +3,8 @@ event walked from the triangle the sample met), against the exact tracer: every 
 that hits is refused by the tolerance (no viewpoint cell measured, as in test_path_solve.py),
 so each is solved or traced, and what is solved must be what the tracer answers."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -124,6 +126,8 @@ def test_interpolated_dielectric_rays_are_solved_to_carry_the_fresnel_tree():
     interp = is_interpolated(ans)
     assert interp.mean() > 0.5
     st, tree = glass_mesh(3, "dielectric")
+    _, off, _, _ = TreeQuery(tree, st, replace(opts, fresnel_paths=False))(o, d)
+    assert np.array_equal(off, ans)                  # off: the glass's answers
     res, ans, _, _ = TreeQuery(tree, st, opts)(o, d)
     ex = st.object_function(o, d, fresnel_tree=True)
     assert np.mean(ans[interp] == SOLVED) > 0.8

@@ -78,6 +78,11 @@ class QueryOptions:
                                        # proxy shows nothing nearer, and a miss where the proxy
                                        # shows nothing at all (query/certify.py); the full
                                        # search for the rest. False: the full search (paper)
+    fresnel_paths: bool = True         # a dielectric's interpolated rays are solved along
+                                       # their samples' paths (with solve_paths) to carry the
+                                       # reflections at later crossings, as traced rays do
+                                       # (query/paths.py): exact colour, most of the speed-up
+                                       # gone; False: they carry the refracted chain alone
 
     def validate(self) -> "QueryOptions":
         if self.policy not in ("ri", "raytree"):

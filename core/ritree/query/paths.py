@@ -27,10 +27,10 @@ a hit on a patch none of its samples hit) is then answered by its one reflection
 that reflection leaves the object (the proxy, and the exact tracer over the stretch next to the
 hit that the proxy does not look at). The others are traced.
 
-On a dielectric, the rays the tree interpolated are solved along their samples' paths too:
-the tree holds one output ray per ray, but at each crossing after the first the glass also
-reflects (the Fresnel tree, trace.objectfn), which a solved chain carries; where the chain is
-not solved the interpolated answer stays.
+On a dielectric (``QueryOptions.fresnel_paths``), the rays the tree interpolated are solved
+along their samples' paths too: the tree holds one output ray per ray, but at each crossing
+after the first the glass also reflects (the Fresnel tree, trace.objectfn), which a solved
+chain carries; where the chain is not solved the interpolated answer stays.
 """
 
 from __future__ import annotations
@@ -85,7 +85,7 @@ def solve_paths(q, b) -> None:
     if q.material.kind == "mirror":
         with b.clock("paths"):
             one_reflection(q, b)
-    elif q.material.kind == "dielectric":
+    elif q.material.kind == "dielectric" and q.opt.fresnel_paths:
         _sample_paths(q, b, np.flatnonzero(is_interpolated(b.ans)))
 
 
