@@ -1,7 +1,7 @@
 """Bake jobs on Blender's side (no bpy): start the worker process, poll its progress, cancel it,
-install the finished cache. Everything here is called from Blender's main thread (a modal
-operator's timer, a bpy.app.timers function or a blocking loop); the work itself runs in the
-worker process, so the UI never freezes.
+install the finished cache; estimate jobs alike, whose result is the estimate. Everything here
+is called from Blender's main thread (a modal operator's timer, a bpy.app.timers function or a
+blocking loop); the work itself runs in the worker process, so the UI never freezes.
 
 Files: a private job folder (tempfile, removed when the job ends, however it ends) for
 job.json / scene.json / progress / result / log; the cache is written by the worker to
@@ -33,6 +33,8 @@ def python_executable() -> str:
 
 class BakeJob:
     """One bake in a worker process. ``state``: running | done | cancelled | failed."""
+
+    task = "bake"               # what the worker does (worker.py)
 
     def __init__(self, object_name: str, cache_path: str):
         self.object_name = object_name
@@ -68,13 +70,12 @@ class BakeJob:
 
     def _launch(self, scene, params: dict, meta: dict, scheduler: str) -> None:
         """Write the job folder's files and start the worker process."""
-        folder = os.path.dirname(os.path.abspath(self.cache_path))
-        os.makedirs(folder, exist_ok=True)
-        self.tmp_output = f"{os.path.abspath(self.cache_path)}.tmp{os.getpid()}_{id(self)}"
+        self.tmp_output = self._output_path()
         save_scene(scene, os.path.join(self.job_dir, "scene.json"))
         with open(os.path.join(self.job_dir, "job.json"), "w", encoding="utf-8") as fh:
-            json.dump({"scene": "scene.json", "params": params, "output": self.tmp_output,
-                       "meta": meta, "scheduler": scheduler}, fh, default=float)
+            json.dump({"task": self.task, "scene": "scene.json", "params": params,
+                       "output": self.tmp_output, "meta": meta, "scheduler": scheduler}, fh,
+                      default=float)
         log = open(os.path.join(self.job_dir, "worker.log"), "wb")
         try:
             self.proc = subprocess.Popen([python_executable(), WORKER, self.job_dir],
@@ -125,15 +126,16 @@ class BakeJob:
             return self.state
         result = self._read_json("result.json") or {}
         status = result.get("status")
-        if status == "done" and rc == 0 and os.path.exists(self.tmp_output):
+        if status == "done" and rc == 0:
             try:
-                os.replace(self.tmp_output, self.cache_path)
-                self.bytes = int(result.get("bytes", 0))
-                self.fraction = 1.0
-                self._finish("done", "")
+                if self._take(result):
+                    self.fraction = 1.0
+                    self._finish("done", "")
+                    return self.state
             except OSError as exc:
                 self._finish("failed", f"could not write {self.cache_path}: {exc}")
-        elif status == "cancelled" or self.cancel_requested:
+                return self.state
+        if status == "cancelled" or self.cancel_requested:
             self._finish("cancelled", "")
         else:
             err = result.get("error") or f"the worker exited with code {rc}"
@@ -154,12 +156,26 @@ class BakeJob:
         return self.state
 
     # ------------------------------------------------------------------ internals
+    def _output_path(self) -> str:
+        """Where the worker writes the cache: beside the final path (its folder made)."""
+        os.makedirs(os.path.dirname(os.path.abspath(self.cache_path)), exist_ok=True)
+        return f"{os.path.abspath(self.cache_path)}.tmp{os.getpid()}_{id(self)}"
+
+    def _take(self, result: dict) -> bool:
+        """Move the finished cache into place (OSError when it cannot be); False when the
+        worker wrote none."""
+        if not os.path.exists(self.tmp_output):
+            return False
+        os.replace(self.tmp_output, self.cache_path)
+        self.bytes = int(result.get("bytes", 0))
+        return True
+
     def _finish(self, state: str, error: str) -> None:
         self.state = state
         self.error = error
         self.finished = time.time()
         self.message = {"done": "finished", "cancelled": "cancelled"}.get(state, error)
-        if os.path.exists(self.tmp_output):
+        if self.tmp_output and os.path.exists(self.tmp_output):
             try:
                 os.remove(self.tmp_output)
             except OSError:
@@ -190,7 +206,28 @@ class BakeJob:
             return ""
 
 
+class EstimateJob(BakeJob):
+    """The estimate of one bake (backend.estimate_bake: the cameras' region and a trial bake)
+    in a worker process, so that Blender stays responsive; ``estimate`` holds the result
+    ({"time_s", "bytes", ...}) once done, for the bake settings ``key`` it was asked for."""
+
+    task = "estimate"
+
+    def __init__(self, object_name: str, key: str):
+        super().__init__(object_name, "")
+        self.key = key
+        self.estimate: dict = {}
+
+    def _output_path(self) -> str:
+        return ""
+
+    def _take(self, result: dict) -> bool:
+        self.estimate = dict(result.get("estimate") or {})
+        return bool(self.estimate)
+
+
 JOBS: dict[str, BakeJob] = {}      # object name -> its current / last bake job
+ESTIMATES: dict[str, EstimateJob] = {}     # object name -> its current / last estimate
 
 
 def running_job(obj_name: str | None = None) -> BakeJob | None:

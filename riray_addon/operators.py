@@ -5,7 +5,8 @@ object first). From the UI (invoke) it runs modal: the bake runs in a worker pro
 polls it, the panel and the status bar show a progress bar with ETA, Esc or the Cancel button
 stops it (any previous cache is kept). From a script (execute) it blocks until the bake ends
 unless ``wait=False`` (then a bpy.app.timers function finishes it; in background mode call
-``poll_jobs()`` yourself).
+``poll_jobs()`` yourself). ``bpy.ops.riray.bake_estimate`` runs the same way: its work (the
+cameras' region, a trial bake) in a worker process, never on Blender's main thread.
 """
 
 
@@ -21,7 +22,8 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 from ..core.scene.io import save_scene
 from . import backend, cache, compat
 from .export import export_camera, export_scene, object_fingerprint
-from .jobs import JOBS, BakeJob, format_bytes, format_duration, running_job
+from .jobs import (ESTIMATES, JOBS, BakeJob, EstimateJob, format_bytes, format_duration,
+                   running_job)
 from .properties import BAKE_KEYS, QUALITY, QUERY_KEYS, bake_params, scheduler_address
 from .report import ExportError, Report
 
@@ -197,14 +199,16 @@ def finish_job(job: BakeJob, report_fn=None) -> None:
 
 
 def poll_jobs() -> bool:
-    """Poll every running job, finishing the ones that ended; True while any still runs."""
+    """Poll every running bake and estimate, finishing the ones that ended; True while any
+    still runs."""
     any_running = False
-    for job in list(JOBS.values()):
-        if job.running:
-            if job.poll() == "running":
-                any_running = True
-            else:
-                finish_job(job)
+    for jobs, finish in ((JOBS, finish_job), (ESTIMATES, finish_estimate)):
+        for job in list(jobs.values()):
+            if job.running:
+                if job.poll() == "running":
+                    any_running = True
+                else:
+                    finish(job)
     _redraw()
     return any_running
 
@@ -376,30 +380,117 @@ class RIRAY_OT_bake_clear(bpy.types.Operator):
 
 
 class RIRAY_OT_bake_estimate(bpy.types.Operator):
-    """Estimate bake time and cache size (traces a few thousand rays through the object)"""
+    """Estimate bake time and cache size: a small trial bake in a worker process (Esc cancels);
+    the result shows in the panel when it is ready"""
     bl_idname = "riray.bake_estimate"
     bl_label = "Estimate"
 
     object: StringProperty(name="Object", default="")
+    wait: BoolProperty(name="Wait", default=True,
+                       description="From scripts: block until the estimate is ready")
+
+    _timer = None
+    _job = None
 
     def execute(self, context):
         try:
-            obj = target_object(context, self.object)
-            scene, params, _ = prepare_bake(context, obj, Report())
+            job = start_estimate(context, target_object(context, self.object))
         except ExportError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        est = backend.estimate_bake(scene, params)
-        obj.riray.estimate_time_s = est["time_s"]
-        obj.riray.estimate_bytes = est["bytes"]
-        obj.riray.estimate_key = estimate_key(obj)
-        self.report({"INFO"}, f"estimate: {format_duration(est['time_s'])}, "
-                              f"{format_bytes(est['bytes'])} ({est['rays']} rays)")
+        if not self.wait:
+            if not bpy.app.timers.is_registered(_timer_poll):
+                bpy.app.timers.register(_timer_poll, first_interval=TIMER_S)
+            return {"FINISHED"}
+        try:
+            job.wait()
+        except KeyboardInterrupt:
+            job.cancel()
+            job.wait()
+        finish_estimate(job, self.report)
+        return {"FINISHED"} if job.state == "done" else {"CANCELLED"}
+
+    def invoke(self, context, event):
+        if context.window is None or bpy.app.background:
+            return self.execute(context)
+        try:
+            self._job = start_estimate(context, target_object(context, self.object))
+        except ExportError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(TIMER_S, window=context.window)
+        wm.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == "ESC" and event.value == "PRESS":
+            job.cancel()
+            return {"RUNNING_MODAL"}
+        if event.type == "TIMER":
+            job.poll()
+            _redraw()
+            if not job.running:
+                context.window_manager.event_timer_remove(self._timer)
+                finish_estimate(job, self.report)
+                return {"FINISHED"} if job.state == "done" else {"CANCELLED"}
+        return {"PASS_THROUGH"}
+
+
+class RIRAY_OT_bake_estimate_cancel(bpy.types.Operator):
+    """Stop the running estimate"""
+    bl_idname = "riray.bake_estimate_cancel"
+    bl_label = "Cancel Estimate"
+
+    object: StringProperty(name="Object", default="", description="Empty: every estimate")
+
+    def execute(self, context):
+        for name, job in ESTIMATES.items():
+            if not self.object or name == self.object:
+                job.cancel()
         return {"FINISHED"}
 
 
 def estimate_key(obj) -> str:
     return json.dumps(bake_params(obj), sort_keys=True)
+
+
+def start_estimate(context, obj) -> EstimateJob:
+    """Export what a bake of ``obj`` would (checked as for a bake) and start its estimate in
+    a worker process; an estimate of ``obj`` still running is cancelled first."""
+    scene, params, _ = prepare_bake(context, obj, Report())
+    old = ESTIMATES.get(obj.name)
+    if old is not None:
+        old.cancel()
+    try:
+        job = EstimateJob(obj.name, estimate_key(obj)).start(scene, params, {})
+    except (OSError, ValueError) as exc:
+        raise ExportError(f"{obj.name}: cannot start the estimate: {exc}") from None
+    ESTIMATES[obj.name] = job
+    return job
+
+
+def finish_estimate(job: EstimateJob, report_fn=None) -> None:
+    """Main thread, once an estimate ended: show it on the object (for the settings it was
+    asked for) or tell why not."""
+    obj = bpy.data.objects.get(job.object_name)
+    if job.state == "done" and obj is not None:
+        est = job.estimate
+        obj.riray.estimate_time_s = est["time_s"]
+        obj.riray.estimate_bytes = est["bytes"]
+        obj.riray.estimate_key = job.key
+        level, msg = "INFO", (f"estimate for {job.object_name}: "
+                              f"{format_duration(est['time_s'])}, {format_bytes(est['bytes'])}")
+    elif job.state == "failed":
+        level, msg = "ERROR", f"estimate of {job.object_name} failed: {job.error}"
+        if job.traceback:
+            print(job.traceback)
+    else:
+        level, msg = "INFO", f"estimate of {job.object_name} cancelled"
+    if report_fn is not None:
+        report_fn({level}, msg)
+    _redraw()
 
 
 class RIRAY_OT_export_scene(bpy.types.Operator):
@@ -487,6 +578,7 @@ class RIRAY_OT_spline_groups_join(bpy.types.Operator):
 
 
 CLASSES = (RIRAY_OT_bake, RIRAY_OT_bake_cancel, RIRAY_OT_bake_clear, RIRAY_OT_bake_estimate,
+           RIRAY_OT_bake_estimate_cancel,
            RIRAY_OT_export_scene, RIRAY_OT_spline_groups_sync, RIRAY_OT_spline_groups_join)
 
 
@@ -496,9 +588,8 @@ def register():
 
 
 def unregister():
-    for job in JOBS.values():
-        if job.running:
-            job.cancel()
+    for job in list(JOBS.values()) + list(ESTIMATES.values()):
+        job.cancel()
     if bpy.app.timers.is_registered(_timer_poll):
         bpy.app.timers.unregister(_timer_poll)
     for cls in reversed(CLASSES):

@@ -13,7 +13,7 @@ from . import cache
 from .engine import ENGINE_ID
 from .jobs import format_bytes, format_duration
 from .materials import is_sharp_specular
-from .jobs import JOBS
+from .jobs import ESTIMATES, JOBS
 from .operators import estimate_key
 from .report import ExportError
 
@@ -76,13 +76,27 @@ def _draw_actions(layout, obj, p) -> None:
         op.object = obj.name
         op.wait = False
         row.operator("riray.bake_clear", text="Clear", icon="TRASH").object = obj.name
-    row = layout.row()
+    _draw_estimate(layout.row(), obj, p)
+
+
+def _draw_estimate(row, obj, p) -> None:
+    """The estimate row: the estimate for the current settings (or "-") and the button that
+    starts one; while one runs, its progress and a button that stops it."""
+    est = ESTIMATES.get(obj.name)
+    if est is not None and est.running:
+        row.label(text=f"Estimating... {100 * est.fraction:.0f}%")
+        row.operator("riray.bake_estimate_cancel", text="", icon="CANCEL").object = obj.name
+        return
     if p.estimate_time_s >= 0 and p.estimate_key == estimate_key(obj):
         row.label(text=f"Estimate: {format_duration(p.estimate_time_s)}, "
                        f"{format_bytes(p.estimate_bytes)}")
+    elif est is not None and est.state == "failed":
+        row.label(text=f"Estimate failed: {est.error}", icon="ERROR")
     else:
         row.label(text="Estimate: -")
-    row.operator("riray.bake_estimate", text="", icon="TIME").object = obj.name
+    op = row.operator("riray.bake_estimate", text="", icon="TIME")
+    op.object = obj.name
+    op.wait = False
 
 
 def _draw_status(box, context, obj, p) -> None:

@@ -2,14 +2,16 @@
 Python that imported the bpy module). Never imports bpy; never pickles.
 
 JOB_DIR holds (written by riray_addon.jobs in Blender):
-  job.json       {"scene": "scene.json", "params": {...}, "output": "<cache>.tmp<pid>",
-                  "meta": {...}, "scheduler": "" | Dask scheduler address | "local:N"}
+  job.json       {"task": "bake" | "estimate", "scene": "scene.json", "params": {...},
+                  "output": "<cache>.tmp<pid>", "meta": {...},
+                  "scheduler": "" | Dask scheduler address | "local:N"}
   scene.json     the core scene (object + cameras), riray JSON scene format
 The worker writes:
   progress.json  {"fraction", "message", "time", "eta"} (atomically replaced, at most every
                  0.1 s; eta: core's estimate of the seconds left, when its message has one)
   result.json    {"status": "done" | "cancelled" | "failed", "error", "traceback", "bytes",
-                  "stats"} - last thing written
+                  "estimate"} - last thing written (an estimate task: "estimate", the dict of
+                  backend.estimate_bake, and no cache)
 and stops early when the file JOB_DIR/cancel appears or its parent process goes away.
 
 Imports: the extension folder (parent of riray_addon/) is mounted as a synthetic package whose
@@ -93,6 +95,11 @@ def run(job_dir: str) -> int:
         io = import_module(f"{PKG}.core.scene.io")
         scene = io.load_scene(os.path.join(job_dir, job["scene"]))
         progress(0.0, "starting")
+        if job.get("task") == "estimate":
+            est = backend.estimate_bake(scene, job["params"], progress, cancel)
+            _write_json(result_path, {"status": "done", "estimate": est,
+                                      "time": time.time() - t0})
+            return 0
         tree = backend.bake_tree(scene, job["params"], progress, cancel,
                                  job.get("scheduler", ""))
         if cancel():

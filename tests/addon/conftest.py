@@ -85,7 +85,7 @@ def blender(extension_zip, tmp_path_factory):
     ns = SimpleNamespace(bpy=bpy, addon=addon, reset=reset, resources=resources,
                          zip=extension_zip.path, **mods)
     yield ns
-    for job in list(mods["jobs"].JOBS.values()):
+    for job in list(mods["jobs"].JOBS.values()) + list(mods["jobs"].ESTIMATES.values()):
         if job.running:
             job.cancel()
             job.wait(timeout=10)
