@@ -92,7 +92,7 @@ def viewpoint_errors(tree, st, cameras):
     ex = st.object_function(o, d, tmax)
     paper = QueryOptions(angle_deg=None, max_error_deg=None,     # the rules, no tolerance
                          mirror_rays=MEASURE_MIRROR_RAYS, null_interp=MEASURE_NULL_INTERP,
-                         many_classes="trace", solve_paths=False)
+                         many_classes="trace", solve_paths=False, fresnel_tree=False)
     res, ans, _, _ = TreeQuery(tree, st, paper)(o, d, tmax)
     e = np.full(len(o), np.nan)
     interp = (ans >= FULL) & (ans <= EXTRAPOLATED_S)

@@ -41,9 +41,9 @@ def _clocked_bake(work_clock, st, params, region=None):
     fractions reported, their messages)."""
     f = st.object_function
 
-    def counted(o, d, tmax=None, first=None, record=None):
+    def counted(o, d, tmax=None, first=None, record=None, **kw):
         work_clock["now"] += len(o) * (EXTRA_COST if work_clock["kind"] == "extra" else 1)
-        return f(o, d, tmax, first, record)
+        return f(o, d, tmax, first, record, **kw)
     st.object_function = counted
     calls = []
     bake_mod.bake(st, params, region, workers=1,

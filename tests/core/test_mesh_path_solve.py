@@ -126,7 +126,7 @@ def test_interpolated_dielectric_rays_are_solved_to_carry_the_fresnel_tree():
     interp = is_interpolated(ans)
     assert interp.mean() > 0.5
     st, tree = glass_mesh(3, "dielectric")
-    _, off, _, _ = TreeQuery(tree, st, replace(opts, fresnel_paths=False))(o, d)
+    _, off, _, _ = TreeQuery(tree, st, replace(opts, fresnel_tree=False))(o, d)
     assert np.array_equal(off, ans)                  # off: the glass's answers
     res, ans, _, _ = TreeQuery(tree, st, opts)(o, d)
     ex = st.object_function(o, d, fresnel_tree=True)

@@ -31,7 +31,7 @@ def refine_rule():
     not the render-time default, which may change."""
     from ..query import QueryOptions
     return QueryOptions(angle_deg=REFINE_ANGLE_DEG, max_error_deg=None, null_interp=False,
-                        many_classes="trace", solve_paths=False)
+                        many_classes="trace", solve_paths=False, fresnel_tree=False)
 
 
 def finest_rule():
@@ -43,7 +43,7 @@ def finest_rule():
                         null_interp=True, max_error_deg=FINEST_TOLERANCE_DEG,
                         fallback_angle_deg=REFINE_ANGLE_DEG, path_identity=False,
                         one_path=False, mirror_rays="newton", many_classes="trace",
-                        solve_paths=False)
+                        solve_paths=False, fresnel_tree=False)
 
 
 class Baker:

@@ -78,11 +78,13 @@ class QueryOptions:
                                        # proxy shows nothing nearer, and a miss where the proxy
                                        # shows nothing at all (query/certify.py); the full
                                        # search for the rest. False: the full search (paper)
-    fresnel_paths: bool = True         # a dielectric's interpolated rays are solved along
-                                       # their samples' paths (with solve_paths) to carry the
-                                       # reflections at later crossings, as traced rays do
-                                       # (query/paths.py): exact colour, most of the speed-up
-                                       # gone; False: they carry the refracted chain alone
+    fresnel_tree: bool = True          # a dielectric's answers carry the reflections at its
+                                       # later crossings (trace.objectfn's Fresnel tree): traced
+                                       # rays follow it, solved chains too, and with
+                                       # solve_paths its interpolated rays are solved to carry
+                                       # it (query/paths.py): exact colour, most of the speed-up
+                                       # gone; False: the refracted chain alone (the bake's
+                                       # rules, which compare output rays)
 
     def validate(self) -> "QueryOptions":
         if self.policy not in ("ri", "raytree"):

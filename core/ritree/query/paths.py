@@ -27,7 +27,7 @@ a hit on a patch none of its samples hit) is then answered by its one reflection
 that reflection leaves the object (the proxy, and the exact tracer over the stretch next to the
 hit that the proxy does not look at). The others are traced.
 
-On a dielectric (``QueryOptions.fresnel_paths``), the rays the tree interpolated are solved
+On a dielectric (``QueryOptions.fresnel_tree``), the rays the tree interpolated are solved
 along their samples' paths too: the tree holds one output ray per ray, but at each crossing
 after the first the glass also reflects (the Fresnel tree, trace.objectfn), which a solved
 chain carries; where the chain is not solved the interpolated answer stays.
@@ -85,7 +85,7 @@ def solve_paths(q, b) -> None:
     if q.material.kind == "mirror":
         with b.clock("paths"):
             one_reflection(q, b)
-    elif q.material.kind == "dielectric" and q.opt.fresnel_paths:
+    elif q.material.kind == "dielectric" and q.opt.fresnel_tree:
         _sample_paths(q, b, np.flatnonzero(is_interpolated(b.ans)))
 
 
@@ -203,6 +203,7 @@ def chain(q, b, rays, sid, uvs, max_move) -> None:
     min_cos = np.cos(np.radians(CHAIN_MAX_TURN_DEG))
     fresnel, refl_dir = np.zeros(n), np.zeros((n, 3))
     out_weight, branches = np.ones(n), FresnelBranches()    # a dielectric's Fresnel tree
+    split = mat.kind == "dielectric" and q.opt.fresnel_tree
     n_max = patches.shape[1]
     pts, nrms, dirs = (np.zeros((n, n_max, 3)) for _ in range(3))
     for e in range(n_max):
@@ -229,7 +230,7 @@ def chain(q, b, rays, sid, uvs, max_move) -> None:
         if e == 0 and mat.kind == "dielectric":
             fresnel[act] = fresnel_dielectric(-np.einsum("ij,ij->i", d_in, nrm), ev.eta)
             refl_dir[act] = reflect(d_in, event_normal(d_in, nrm, geo))
-        if e > 0 and mat.kind == "dielectric":
+        if e > 0 and split:
             branches.split(act, hit.point, d_in, nrm, geo, ev.n_t, ev.eta, ev.tir, ev.inside,
                            e + 1, out_weight)
         inside[act] = ev.inside_after

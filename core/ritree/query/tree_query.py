@@ -127,6 +127,7 @@ class TreeQuery:
             tr = np.flatnonzero(is_traced(b.ans))
             if len(tr):
                 ex = self.st.object_function(b.o[tr], b.d[tr], b.tmax[tr],
-                                             first=b.known.of(tr), fresnel_tree=True)
+                                             first=b.known.of(tr),
+                                             fresnel_tree=self.opt.fresnel_tree)
                 for k, val in ex.__dict__.items():
                     getattr(b.res, k)[tr] = val
