@@ -7,8 +7,10 @@ its own uniform grid, refined piece by piece until the gap between the surface a
 the cells' centres and edge midpoints is within MAX_GAP_REL (mesh patches as they are).
 ``deviation`` bounds how far the tessellation lies from the surface: the largest such gap times
 DEVIATION_SAFETY. The proxy is two shells, the tessellation moved by ``deviation`` along its
-vertex normals either way: the surface lies between them, so a segment that meets the surface
-meets a shell, even one grazing a convex patch that the tessellation alone would miss. Near a
+vertex normals either way, closed along the tessellation's open edges (a sheet's rim, a
+piece's border) by a wall from one shell to the other: the surface lies inside, so a segment
+that meets the surface meets a shell or a wall, even one grazing a convex patch that the
+tessellation alone would miss or one lying in a flat patch's plane. Near a
 segment's ends (which lie on the surface) a shell can be met although the surface is not: those
 stretches, twice ``deviation`` over the sine of the segment's angle with the surface there, are
 not tested.
@@ -80,10 +82,15 @@ class Proxy:
             meshes.append(Mesh(name=p.name, vertices=np.concatenate(verts),
                                triangles=np.concatenate(tris), material=""))
         dev = max(DEVIATION_SAFETY * gap, MIN_DEVIATION_REL * tracer.diag)
-        shells = [Mesh(name=f"{m.name}{side}", vertices=m.vertices + sign * dev
-                       * _vertex_normals(m.vertices, m.triangles), triangles=m.triangles,
-                       material="") for m in meshes for side, sign in (("+", 1.0), ("-", -1.0))]
-        return cls(mesh=MeshSet(shells), deviation=dev)
+        shells = []
+        for m in meshes:
+            shift = dev * _vertex_normals(m.vertices, m.triangles)
+            shells += [Mesh(name=f"{m.name}+", vertices=m.vertices + shift,
+                            triangles=m.triangles, material=""),
+                       Mesh(name=f"{m.name}-", vertices=m.vertices - shift,
+                            triangles=m.triangles, material=""),
+                       _rim_wall(m, shift)]
+        return cls(mesh=MeshSet([s for s in shells if len(s.triangles)]), deviation=dev)
 
     def crossed(self, start, d, length, n_start, n_end=None) -> np.ndarray:
         """(N,) bool: whether the segments from surface points ``start`` (N, 3) along unit
@@ -116,6 +123,22 @@ def _vertex_normals(v, tris) -> np.ndarray:
         np.add.at(acc, tris[:, k], n)
     ln = np.linalg.norm(acc, axis=1)
     return acc / np.where(ln > 0, ln, 1.0)[:, None]
+
+
+def _rim_wall(m: Mesh, shift) -> Mesh:
+    """The wall that closes the two shells of ``m`` (vertices moved by +-``shift`` (V, 3))
+    along its open edges (those of one triangle: a sheet's rim, a piece grid's border): a ray
+    that reaches the surface between the shells through the rim, as one lying in a flat
+    patch's plane does, meets the wall. Two triangles per open edge."""
+    tris = m.triangles
+    edges = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+    uniq, count = np.unique(edges, axis=0, return_counts=True)
+    rim = uniq[count == 1]
+    v = np.concatenate([m.vertices + shift, m.vertices - shift])
+    lo = len(m.vertices)                  # vertex i of the lower shell is lo + i
+    a, b = rim[:, 0], rim[:, 1]
+    walls = np.concatenate([np.stack([a, b, lo + b], axis=1), np.stack([a, lo + b, lo + a], axis=1)])
+    return Mesh(name=f"{m.name}|", vertices=v, triangles=walls.astype(tris.dtype), material="")
 
 
 def _piece_grids(surf, rects, cells: int):

@@ -54,3 +54,26 @@ def test_shells_lie_within_the_deviation_of_the_surface():
     start = p + 10 * proxy.deviation * n
     near = proxy.crossed(start, -n, np.full(len(p), 12 * proxy.deviation), -n)
     assert np.all(near)
+
+
+def test_rays_in_a_flat_sheets_plane_meet_the_proxy():
+    """A flat open square (z = 0): rays lying in its plane through a point of the square
+    touch the surface all along, yet pass between the two shells without crossing either; the
+    wall along the rim catches them (the proxy is conservative: it may report what the exact
+    search, for such a degenerate ray, does not). Rays in the plane whose line passes beyond
+    the square's corners meet nothing."""
+    from riray.geometry.primitives import bilinear
+    P = lambda x, y: np.array([x, y, 0.0])  # noqa: E731
+    sheet = SpecularObject("sheet", [Patch("m", 0, surface=bilinear(
+        P(-1, -1), P(1, -1), P(-1, 1), P(1, 1)))], ObjectMaterial(kind="mirror"))
+    proxy = Proxy.of(SceneTracer(Scene(objects=[sheet], render=RenderSettings())).tracer)
+    rng = np.random.default_rng(5)
+    n = 4000
+    ang = rng.uniform(0, 2 * np.pi, n)
+    d = np.stack([np.cos(ang), np.sin(ang), np.zeros(n)], axis=1)
+    side = np.stack([-d[:, 1], d[:, 0], np.zeros(n)], axis=1)
+    on = np.concatenate([rng.uniform(-0.9, 0.9, (n, 2)), np.zeros((n, 1))], axis=1)
+    met = proxy.crossed(on - 4 * d, d, np.full(n, np.inf), d)
+    assert np.all(met)
+    beside = side * rng.choice([-1, 1], n)[:, None] * rng.uniform(1.5, 3, n)[:, None]
+    assert not proxy.crossed(beside - 4 * d, d, np.full(n, np.inf), d).any()
