@@ -202,8 +202,11 @@ def test_ctrl_c_keeps_the_previous_cache(tmp_path, local_full, default_sigint):
     ("local:two", "--scheduler local:two: expected local:N with N >= 1")])
 def test_bad_scheduler_is_exit_2_one_line_before_slow_work(spec, says, tmp_path, capsys,
                                                            monkeypatch):
-    import riray.cli as cli
-    monkeypatch.setattr(cli, "_load", lambda path: pytest.fail("loaded the scene first"))
+    # the scene file is read and its object checked first (cheap, and a bad --object must
+    # not wait for a cluster); nothing slow - the tracer's build, the bake - comes before
+    import riray.trace.scene_tracer as scene_tracer
+    monkeypatch.setattr(scene_tracer, "SceneTracer",
+                        lambda *a, **k: pytest.fail("built the tracer first"))
     t0 = time.time()
     with dask.config.set({"distributed.comm.timeouts.connect": "1s"}):
         rc = main(["bake", "glass_sphere", "--full", "--scheduler", spec, "--out",
