@@ -18,6 +18,14 @@ from ..scene.model import Light
 
 ELLIPSE_SIDES = 32       # an elliptic light's closed form is that of this polygon, scaled to
                          # the ellipse's area (irradiance within ~0.1 % of the ellipse's)
+# Points are hashed on a grid of this step (scene units, a power of two: the division is
+# exact): the same hit found in another batch of rays can differ in its last bits (numpy's
+# vectorized sums round by the array's shape), and hashing raw bits gave it other samples,
+# another noise value - a pixel changed with the number of render processes. Neighbouring
+# pixels' points lie far more than a step apart. Cells beyond HASH_CELLS (points ~5e11 units
+# out, past what a scene validates) share the edge cell.
+HASH_STEP = 2.0 ** -24
+HASH_CELLS = 2.0 ** 62
 _MIX1, _MIX2 = np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _PRIMES = (np.uint64(0x8CB92BA72F3D8DD7), np.uint64(0xD6E8FEB86659FD93),
@@ -31,8 +39,11 @@ def _splitmix(h: np.ndarray) -> np.ndarray:
 
 
 def point_offsets(p: np.ndarray, salt: int) -> np.ndarray:
-    """(2, k) numbers in [0, 1) hashed from the bits of points ``p`` (3, k) and ``salt``."""
-    bits = np.ascontiguousarray(p, dtype=np.float64).view(np.uint64)
+    """(2, k) numbers in [0, 1) hashed from points ``p`` (3, k) on the grid of HASH_STEP and
+    ``salt``."""
+    cell = np.clip(np.floor(np.asarray(p, dtype=np.float64) / HASH_STEP), -HASH_CELLS,
+                   HASH_CELLS)
+    bits = np.ascontiguousarray(cell.astype(np.int64)).view(np.uint64)
     with np.errstate(over="ignore"):
         h = np.full(p.shape[1], np.uint64(salt) * _GOLDEN, np.uint64)
         for row, prime in zip(bits, _PRIMES):

@@ -236,3 +236,29 @@ def test_emission_materials_have_no_glossy_layer():
     d["materials"].append({"name": "lamp", "kind": "emission", "metallic": 1})
     with pytest.raises(SceneError, match="an 'emission' material has no metallic"):
         scene_from_dict(d)
+
+
+def test_sampled_terms_ignore_the_last_bits_of_a_point():
+    """The same hit found in another batch of rays can differ in its last bits; its sampled
+    terms (sky, area light, lobe rays) must not: a pixel changed with the number of render
+    processes when the samples' offsets were hashed from a point's raw bits. Points a few ulps
+    apart get the same offsets; points a thousandth of a unit apart different ones."""
+    from riray.trace.lights import point_offsets
+    rng = np.random.default_rng(7)
+    p = rng.uniform(-20, 20, (3, 2000))
+    # random cell-interior points (the grid step is 2^-24: a few ulps never cross a cell edge
+    # but at ~1e-8 of the points, none of these)
+    nudged = p + np.abs(p) * rng.choice([-4, -1, 1, 4], p.shape) * np.finfo(float).eps
+    assert np.array_equal(point_offsets(p, 3), point_offsets(nudged, 3))
+    other = point_offsets(p + 1e-3, 3)
+    assert np.mean(np.any(other != point_offsets(p, 3), axis=0)) > 0.99
+    # a sky-lit floor under an area light, shaded along the same rays twice, once moved a
+    # few ulps: the same colour but for rounding (the sampled terms' noise is ~1e-2)
+    blocker = quad(1.0, 0.5, "roof", "floor")          # penumbrae of the sky and the light
+    env = Environment(scene([area()], meshes=[quad(0.0, 50.0, "floor", "floor"), blocker],
+                            world=World(color=tuple(SKY), sky=True)))
+    o, d = down_rays(rng.uniform(-1.5, 1.5, (500, 2)))
+    o[:, 2] = 0.5                                        # below the blocker, above the floor
+    a = env.shade_rays(o, d)
+    b = env.shade_rays(o * (1 + 2 * np.finfo(float).eps), d)
+    assert np.abs(a - b).max() < 1e-9
