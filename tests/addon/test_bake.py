@@ -322,6 +322,7 @@ def test_degenerate_object_refused(bl, tmp_path):
     import tempfile
     bpy = bl.bpy
     obj, _ = _setup(bl, tmp_path)
+    obj.riray.specular = True           # a specular object for F12 (no glass material here)
     points = [tuple(pt.co) for pt in obj.data.splines[0].points]
     bpy.context.scene.render.resolution_x = bpy.context.scene.render.resolution_y = 8
     pattern = os.path.join(tempfile.gettempdir(), "riray_bake_*")

@@ -262,7 +262,9 @@ def test_animation_bench_refuses_one_frame(tmp_path):
                          capture_output=True, text=True, timeout=120,
                          env={**os.environ, "BLENDER_USER_RESOURCES": str(tmp_path / "bl_user")})
     assert res.returncode == 2, res.stdout + res.stderr
-    assert res.stderr.strip().splitlines()[-1] == "animation_bench: --frames must be at least 2"
+    assert res.stderr.strip().splitlines()[-1] == (
+        "animation_bench: the camera must move over at least 2 frames (--frames minus --hold, "
+        "--hold >= 0)")
     assert not (tmp_path / "work").exists()
 
 

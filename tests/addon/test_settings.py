@@ -129,9 +129,12 @@ def test_defaults_are_cores(bl):
     assert set(want) - set(got) == {"viewpoint_tolerance_deg", "pad"}     # not in the add-on
     _same({k: got[k] for k in want if k in got}, {k: v for k, v in want.items() if k in got})
     # every QueryOptions field but these is a setting, so its default is checked here too
-    # (one_path: a rule of the tolerance that is always on in the add-on)
+    # (one_path: a rule of the tolerance that is always on in the add-on; certify_first_hits:
+    # the same answers, only faster; fresnel_tree: a glass material's reflections at every
+    # crossing, always on as Blender's renderers weigh them)
     assert set(asdict(query.QueryOptions())) - set(got["query"]) == \
-        {"threshold_on", "threshold_leaves", "fallback_angle_deg", "one_path"}
+        {"threshold_on", "threshold_leaves", "fallback_angle_deg", "one_path",
+         "certify_first_hits", "fresnel_tree"}
     _same(asdict(query.QueryOptions(**got["query"])), asdict(query.QueryOptions()))
     assert bl.properties.QUALITY == {k.upper(): v for k, v in params.QUALITY_PRESETS.items()}
     assert {k: got[k] for k in params.QUALITY_PRESETS["default"]} == \
