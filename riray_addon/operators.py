@@ -237,7 +237,44 @@ def _param_props():
             for k in BAKE_KEYS + QUERY_KEYS}
 
 
-class RIRAY_OT_bake(bpy.types.Operator):
+class _JobModal:
+    """invoke / modal of an operator that runs a job in a worker process (a bake, an
+    estimate): from the UI, modal with a timer, Esc cancels; in the background or from a
+    script without a window, ``execute``. The operator gives ``_start(context)`` (the job, or
+    ExportError) and ``_finish(job)`` (its report)."""
+
+    _timer = None
+    _job = None
+
+    def invoke(self, context, event):
+        if context.window is None or bpy.app.background:
+            return self.execute(context)
+        try:
+            self._job = self._start(context)
+        except ExportError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(TIMER_S, window=context.window)
+        wm.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == "ESC" and event.value == "PRESS":
+            job.cancel()
+            return {"RUNNING_MODAL"}
+        if event.type == "TIMER":
+            job.poll()
+            _redraw()
+            if not job.running:
+                context.window_manager.event_timer_remove(self._timer)
+                self._finish(job)
+                return {"FINISHED"} if job.state == "done" else {"CANCELLED"}
+        return {"PASS_THROUGH"}
+
+
+class RIRAY_OT_bake(_JobModal, bpy.types.Operator):
     """Bake the RI-Tree of the object in a worker process (Esc cancels)"""
     bl_idname = "riray.bake"
     bl_label = "Bake RI-Tree"
@@ -251,9 +288,6 @@ class RIRAY_OT_bake(bpy.types.Operator):
     wait: BoolProperty(name="Wait", default=True,
                        description="From scripts: block until the bake ends")
     __annotations__.update(_param_props())
-
-    _timer = None
-    _job = None
 
     def _apply_options(self, obj) -> None:
         """Store the options given on the object; refused ones (ExportError) leave it as it
@@ -302,35 +336,11 @@ class RIRAY_OT_bake(bpy.types.Operator):
             job.wait()
         finally:
             wm.progress_end()
-        finish_job(job, self.report)
+        self._finish(job)
         return {"FINISHED"} if job.state == "done" else {"CANCELLED"}
 
-    def invoke(self, context, event):
-        if context.window is None or bpy.app.background:
-            return self.execute(context)
-        try:
-            self._job = self._start(context)
-        except ExportError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
-        wm = context.window_manager
-        self._timer = wm.event_timer_add(TIMER_S, window=context.window)
-        wm.modal_handler_add(self)
-        return {"RUNNING_MODAL"}
-
-    def modal(self, context, event):
-        job = self._job
-        if event.type == "ESC" and event.value == "PRESS":
-            job.cancel()
-            return {"RUNNING_MODAL"}
-        if event.type == "TIMER":
-            job.poll()
-            _redraw()
-            if not job.running:
-                context.window_manager.event_timer_remove(self._timer)
-                finish_job(job, self.report)
-                return {"FINISHED"} if job.state == "done" else {"CANCELLED"}
-        return {"PASS_THROUGH"}
+    def _finish(self, job) -> None:
+        finish_job(job, self.report)
 
 
 class RIRAY_OT_bake_cancel(bpy.types.Operator):
@@ -379,7 +389,7 @@ class RIRAY_OT_bake_clear(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class RIRAY_OT_bake_estimate(bpy.types.Operator):
+class RIRAY_OT_bake_estimate(_JobModal, bpy.types.Operator):
     """Estimate bake time and cache size: a small trial bake in a worker process (Esc cancels);
     the result shows in the panel when it is ready"""
     bl_idname = "riray.bake_estimate"
@@ -389,12 +399,9 @@ class RIRAY_OT_bake_estimate(bpy.types.Operator):
     wait: BoolProperty(name="Wait", default=True,
                        description="From scripts: block until the estimate is ready")
 
-    _timer = None
-    _job = None
-
     def execute(self, context):
         try:
-            job = start_estimate(context, target_object(context, self.object))
+            job = self._start(context)
         except ExportError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -407,35 +414,14 @@ class RIRAY_OT_bake_estimate(bpy.types.Operator):
         except KeyboardInterrupt:
             job.cancel()
             job.wait()
-        finish_estimate(job, self.report)
+        self._finish(job)
         return {"FINISHED"} if job.state == "done" else {"CANCELLED"}
 
-    def invoke(self, context, event):
-        if context.window is None or bpy.app.background:
-            return self.execute(context)
-        try:
-            self._job = start_estimate(context, target_object(context, self.object))
-        except ExportError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
-        wm = context.window_manager
-        self._timer = wm.event_timer_add(TIMER_S, window=context.window)
-        wm.modal_handler_add(self)
-        return {"RUNNING_MODAL"}
+    def _start(self, context):
+        return start_estimate(context, target_object(context, self.object))
 
-    def modal(self, context, event):
-        job = self._job
-        if event.type == "ESC" and event.value == "PRESS":
-            job.cancel()
-            return {"RUNNING_MODAL"}
-        if event.type == "TIMER":
-            job.poll()
-            _redraw()
-            if not job.running:
-                context.window_manager.event_timer_remove(self._timer)
-                finish_estimate(job, self.report)
-                return {"FINISHED"} if job.state == "done" else {"CANCELLED"}
-        return {"PASS_THROUGH"}
+    def _finish(self, job) -> None:
+        finish_estimate(job, self.report)
 
 
 class RIRAY_OT_bake_estimate_cancel(bpy.types.Operator):
