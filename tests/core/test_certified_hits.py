@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from riray.geometry.primitives import bilinear, sphere
+from riray.geometry.primitives import sphere
 from riray.ritree.bake import bake
 from riray.ritree.locate import locate
 from riray.ritree.query import QueryOptions, TreeQuery
@@ -32,19 +32,9 @@ pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 POS_TOL = 1e-6
 
 
-@pytest.fixture(scope="module")
-def shelf():
-    """A mirror floor (class 0) and wall (class 1) with a floating mirror strip (class 2): rays
-    down through the strip's span meet it before the floor."""
-    floor = bilinear(P(-1, -1, 0), P(1, -1, 0), P(-1, 1, 0), P(1, 1, 0))
-    wall = bilinear(P(1, -1, 0), P(1, 1, 0), P(1, -1, 1), P(1, 1, 1))
-    strip = bilinear(P(0.1, -1, 0.5), P(0.3, -1, 0.5), P(0.1, 1, 0.5), P(0.3, 1, 0.5))
-    st = scene_of(SpecularObject("shelf", [Patch("floor", 0, surface=floor),
-                                           Patch("wall", 1, surface=wall),
-                                           Patch("strip", 2, surface=strip)],
-                                 ObjectMaterial(kind="mirror")))
-    return st, bake(st, BakeParams(viewpoint_depth=2, direction_depth=4),
-                    region=top_cells(2, 0.25, 0.75), workers=1)
+# A mirror floor (class 0) and wall (class 1) with a floating mirror strip (class 2): rays
+# down through the strip's span meet it before the floor (the path solver's scene).
+blocked = _ps.blocked
 
 
 @pytest.fixture(scope="module")
@@ -75,11 +65,11 @@ def assert_full_search(st, hit, o, d):
     assert np.abs(hit.point - full.point).max(initial=0) < POS_TOL
 
 
-def test_a_root_behind_something_nearer_is_not_certified(shelf):
+def test_a_root_behind_something_nearer_is_not_certified(blocked):
     """Rays straight down under the strip, given only the floor's class: Newton finds the
     floor, the proxy finds the strip in front, so the full search answers (the strip); rays
     beside the strip are certified on the floor."""
-    st, tree = shelf
+    st, tree = blocked
     x = np.linspace(-0.4, 0.45, 35)
     o = np.c_[x, np.zeros_like(x), np.full_like(x, 1.5)]
     d = np.tile(P(0.0, 0.0, -1.0), (len(x), 1))
@@ -119,10 +109,10 @@ def test_grazing_roots_get_the_full_search(ball, monkeypatch):
     assert hit.hit.all() and n_cert == 2
 
 
-def test_queries_answer_the_same_with_and_without_certified_hits(shelf):
+def test_queries_answer_the_same_with_and_without_certified_hits(blocked):
     """Through the whole query (classes, tolerance misses), certification changes no answer and
     replaces many full searches."""
-    st, tree = shelf
+    st, tree = blocked
     o, d = down_rays(st, 3000, 5, (0.1, 0.9), 1.2)
     res, ans, _, stats = TreeQuery(tree, st)(o, d)
     off, ans_off, _, stats_off = TreeQuery(tree, st, QueryOptions(certify_first_hits=False))(o, d)
