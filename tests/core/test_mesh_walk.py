@@ -1,6 +1,9 @@
 """Walking a ray across a mesh's edges from a known triangle (trace.meshwalk), and the triangle
 a path record keeps for a mesh hit (trace.objectfn.tri_params)."""
 
+import importlib.util
+from pathlib import Path
+
 import numpy as np
 
 from riray.ritree.codec import decode_params, encode_params
@@ -9,24 +12,16 @@ from riray.trace.meshwalk import WALK_STEPS, edge_neighbours, mesh_hits
 from riray.trace.objectfn import params_tri, tri_params
 from riray.trace.patches import PatchTracer
 
+# the smooth-mesh tests' UV sphere (--import-mode=importlib: tests/core is not on sys.path)
+_spec = importlib.util.spec_from_file_location(
+    "riray_tests_smooth_meshes", Path(__file__).with_name("test_smooth_meshes.py"))
+_sm = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_sm)
+
 
 def uv_sphere(n_lat, n_lon):
     """A closed unit UV sphere: (vertices, triangles, corner normals = the true normals)."""
-    th = np.linspace(0, np.pi, n_lat + 1)[1:-1]
-    ph = np.linspace(0, 2 * np.pi, n_lon, endpoint=False)
-    ring = np.stack([np.sin(th)[:, None] * np.cos(ph), np.sin(th)[:, None] * np.sin(ph),
-                     np.cos(th)[:, None] * np.ones_like(ph)], axis=-1).reshape(-1, 3)
-    verts = np.vstack([[0, 0, 1], ring, [0, 0, -1]])
-    idx = lambda i, j: 1 + i * n_lon + j % n_lon
-    tris = []
-    for j in range(n_lon):
-        tris += [[0, idx(0, j), idx(0, j + 1)],
-                 [len(verts) - 1, idx(n_lat - 2, j + 1), idx(n_lat - 2, j)]]
-    for i in range(n_lat - 2):
-        for j in range(n_lon):
-            a, b, c, d = idx(i, j), idx(i, j + 1), idx(i + 1, j), idx(i + 1, j + 1)
-            tris += [[a, c, b], [b, c, d]]
-    tris = np.array(tris, np.int64)
+    verts, tris = _sm.uv_sphere(n_lat, n_lon)
     return verts, tris, verts[tris]
 
 
