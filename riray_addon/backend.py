@@ -34,7 +34,7 @@ from ..core.ritree import tree as ritree
 from ..core.ritree.cache import TreeCacheError
 from ..core.render.frame import TreeAnswerer
 from ..core.ritree.query import QueryOptions, TreeQuery
-from ..core.parallel import workers_default
+from ..core.parallel import map_chunks, workers_default
 from ..core.ritree.bake import TRACE_CHUNK
 from ..core.ritree.dircube import N_SLOTS, U_AXIS, V_AXIS
 from ..core.ritree.locate import entry_points
@@ -50,7 +50,8 @@ EST_TRIAL_CELLS_FULL = 6
 EST_TRIAL_BLOCK = 1
 EST_TRIAL_SEED = 1
 EST_CALIBRATION_RAYS = (128, 1024, 8192)   # batch sizes whose cost per ray is measured
-EST_START_S = 2.0               # worker start, imports, scene read
+EST_START_S = 1.0               # worker start, imports, scene read, tracer (measured 0.7 s on
+                                # the glass_sphere sample, 2-core AMD EPYC), and polling
 
 
 class BakeCancelled(Exception):
@@ -148,15 +149,16 @@ def estimate_bake(scene, params: dict, progress=None, cancel=None) -> dict:
     t0 = time.perf_counter()
     st.tracer.occlusion_proxy                   # built once a bake: not scaled with the trial
     fixed_s = time.perf_counter() - t0
-    cost = _cost_per_ray(st)
+    cost, speedup = _cost_per_ray(st)
     t0 = time.perf_counter()
     tree, calls = _trial(st, bp, trial, lambda fraction: step(fraction, "trial bake"), cancel)
     trial_s = time.perf_counter() - t0
     trees, scale = _extrapolate(tree, bp, region, weight)
     ray_share = 1.0 if region is None else len(region.rays[0]) / max(len(trial.rays[0]), 1)
-    bake_s = _bake_seconds(trial_s, calls, scale, ray_share, cost)
-    trial_bytes, save_s = _saved(tree)
-    return {"time_s": EST_START_S + region_s + fixed_s + bake_s + scale * save_s,
+    bake_s = _bake_seconds(trial_s, calls, scale, ray_share, cost, speedup)
+    trial_bytes, save_s, save_fixed_s = _saved(tree)
+    save_s = save_fixed_s + scale * (save_s - save_fixed_s)
+    return {"time_s": EST_START_S + region_s + fixed_s + bake_s + save_s,
             "bytes": scale * trial_bytes, "rays": round(scale * tree.meta["rays_traced"]),
             "samples": scale * tree.meta["samples"], "direction_trees": trees, "kind": kind,
             "region_s": region_s, "trial_s": trial_s, "bake_s": bake_s}
@@ -183,12 +185,12 @@ def _trial(st, bp, region, progress, cancel):
         del st.object_function
 
 
-def _bake_seconds(trial_s, calls, scale, ray_share, cost) -> float:
+def _bake_seconds(trial_s, calls, scale, ray_share, cost, speedup) -> float:
     """The bake's seconds from the trial's: each exact trace of the trial as a batch ``scale``
     times as large (the checks on the cameras' rays ``ray_share`` times), at the cost per ray
     ``cost(batch)`` gives that size, sample batches split over the bake's worker processes
-    as core splits them; the rest of the trial (bookkeeping) ``scale`` times."""
-    workers = workers_default()
+    as core splits them, ``speedup`` times faster than one process at most (measured); the
+    rest of the trial (bookkeeping) ``scale`` times."""
     rest, traced = trial_s, 0.0
     for n, sample, seconds in calls:
         rest -= seconds
@@ -196,16 +198,18 @@ def _bake_seconds(trial_s, calls, scale, ray_share, cost) -> float:
         big = n * k
         if sample and big > TRACE_CHUNK:
             chunks = math.ceil(big / TRACE_CHUNK)
-            traced += seconds * k * cost(TRACE_CHUNK) / cost(n) / min(workers, chunks)
+            traced += seconds * k * cost(TRACE_CHUNK) / cost(n) / min(speedup, chunks)
         else:
             traced += seconds * k * cost(big) / cost(n)
     return max(rest, 0.0) * scale + traced
 
 
 def _cost_per_ray(st):
-    """cost(n): seconds a ray through the object costs here when traced n at a time, from
-    batches of EST_CALIBRATION_RAYS rays from around its box towards it (log-log between
-    them, flat beyond)."""
+    """(cost, speedup): cost(n), the seconds a ray through the object costs here when traced
+    n at a time, from batches of EST_CALIBRATION_RAYS rays from around its box towards it
+    (log-log between them, flat beyond); speedup, how many times faster the largest batch
+    runs split over the bake's worker processes as the bake splits its batches (1 .. the
+    number of processes: two processes on two cores ran 1.4x, not 2x, faster than one)."""
     rng = np.random.default_rng(EST_TRIAL_SEED)
     c = 0.5 * (st.tracer.lo + st.tracer.hi)
     r = 0.5 * max(st.tracer.diag, 1e-9)
@@ -217,7 +221,22 @@ def _cost_per_ray(st):
         st.object_function(o, d)
         per_ray.append((time.perf_counter() - t0) / n)
     log_n, log_c = np.log(EST_CALIBRATION_RAYS), np.log(np.maximum(per_ray, 1e-12))
-    return lambda n: float(np.exp(np.interp(np.log(max(n, 1.0)), log_n, log_c)))
+    cost = lambda n: float(np.exp(np.interp(np.log(max(n, 1.0)), log_n, log_c)))  # noqa: E731
+    workers = workers_default()
+    if workers <= 1:
+        return cost, 1.0
+    n, chunk = len(o), math.ceil(len(o) / workers)      # the largest batch, split
+
+    def timed(a, b):                # when the chunk ran (the system-wide monotonic clock)
+        t0 = time.monotonic()
+        st.object_function(o[a:b], d[a:b])
+        return t0, time.monotonic()
+    spans = np.array(map_chunks(timed, n, chunk, workers))
+    # from the first chunk's start to the last one's end: the processes' own start is a
+    # bake pass's fixed cost, spread there over many chunks, not part of the speed-up
+    split = spans[:, 1].max() - spans[:, 0].min()
+    one = n * cost(chunk)                  # the same chunks one after another in one process
+    return cost, float(np.clip(one / max(split, 1e-9), 1.0, workers))
 
 
 def _unit(v):
@@ -368,14 +387,19 @@ def _samples_per_tree(tree) -> np.ndarray:
     return np.bincount(pairs >> 32, minlength=len(f.root)).astype(np.float64)
 
 
-def _saved(tree) -> tuple[int, float]:
-    """(bytes, seconds) of the trial ``tree`` saved as a cache file (then removed)."""
+def _saved(tree) -> tuple[int, float, float]:
+    """(bytes, seconds, fixed seconds) of the trial ``tree`` saved as a cache file (then
+    removed); the fixed seconds are those of a file of one array (the atomic write's fsyncs,
+    the encoders' start): a bake's save costs them once, not once per trial's worth."""
     fd, path = tempfile.mkstemp(suffix=".rit")
     os.close(fd)
     try:
         t0 = time.perf_counter()
+        ritree_cache.save_tree(path, {}, {"x": np.zeros(1)})
+        t1 = time.perf_counter()
         ritree.save(tree, path, {})
-        return os.path.getsize(path), time.perf_counter() - t0
+        t2 = time.perf_counter()
+        return os.path.getsize(path), t2 - t1, min(t1 - t0, t2 - t1)
     finally:
         os.remove(path)
 
