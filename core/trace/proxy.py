@@ -130,15 +130,15 @@ def _rim_wall(m: Mesh, shift) -> Mesh:
     along its open edges (those of one triangle: a sheet's rim, a piece grid's border): a ray
     that reaches the surface between the shells through the rim, as one lying in a flat
     patch's plane does, meets the wall. Two triangles per open edge."""
-    tris = m.triangles
+    tris = m.triangles.astype(np.int64)
     edges = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
-    uniq, count = np.unique(edges, axis=0, return_counts=True)
-    rim = uniq[count == 1]
-    v = np.concatenate([m.vertices + shift, m.vertices - shift])
     lo = len(m.vertices)                  # vertex i of the lower shell is lo + i
-    a, b = rim[:, 0], rim[:, 1]
+    key, count = np.unique(edges[:, 0] * lo + edges[:, 1], return_counts=True)
+    a, b = np.divmod(key[count == 1], lo)
+    v = np.concatenate([m.vertices + shift, m.vertices - shift])
     walls = np.concatenate([np.stack([a, b, lo + b], axis=1), np.stack([a, lo + b, lo + a], axis=1)])
-    return Mesh(name=f"{m.name}|", vertices=v, triangles=walls.astype(tris.dtype), material="")
+    return Mesh(name=f"{m.name}|", vertices=v, triangles=walls.astype(m.triangles.dtype),
+                material="")
 
 
 def _piece_grids(surf, rects, cells: int):
