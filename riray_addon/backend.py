@@ -149,7 +149,7 @@ def estimate_bake(scene, params: dict, progress=None, cancel=None) -> dict:
     t0 = time.perf_counter()
     st.tracer.occlusion_proxy                   # built once a bake: not scaled with the trial
     fixed_s = time.perf_counter() - t0
-    cost, speedup = _cost_per_ray(st)
+    cost, speedup = _calibrate(st)
     t0 = time.perf_counter()
     tree, calls = _trial(st, bp, trial, lambda fraction: step(fraction, "trial bake"), cancel)
     trial_s = time.perf_counter() - t0
@@ -204,39 +204,52 @@ def _bake_seconds(trial_s, calls, scale, ray_share, cost, speedup) -> float:
     return max(rest, 0.0) * scale + traced
 
 
-def _cost_per_ray(st):
-    """(cost, speedup): cost(n), the seconds a ray through the object costs here when traced
-    n at a time, from batches of EST_CALIBRATION_RAYS rays from around its box towards it
-    (log-log between them, flat beyond); speedup, how many times faster the largest batch
-    runs split over the bake's worker processes as the bake splits its batches (1 .. the
-    number of processes: two processes on two cores ran 1.4x, not 2x, faster than one)."""
+def _calibrate(st):
+    """(cost, speedup) of the object's exact traces here, measured on EST_CALIBRATION_RAYS
+    batches of rays from around its box towards it: ``_cost_per_ray`` and, for the largest
+    batch, ``_parallel_speedup``."""
     rng = np.random.default_rng(EST_TRIAL_SEED)
     c = 0.5 * (st.tracer.lo + st.tracer.hi)
     r = 0.5 * max(st.tracer.diag, 1e-9)
-    per_ray = []
+    batches = []
     for n in EST_CALIBRATION_RAYS:
         o = c + 1.5 * r * _unit(rng.normal(size=(n, 3)))
-        d = _unit(c + 0.5 * r * rng.uniform(-1, 1, (n, 3)) - o)
+        batches.append((o, _unit(c + 0.5 * r * rng.uniform(-1, 1, (n, 3)) - o)))
+    cost = _cost_per_ray(st, batches)
+    return cost, _parallel_speedup(st, *batches[-1], cost)
+
+
+def _cost_per_ray(st, batches):
+    """cost(n): the seconds a ray costs when traced n at a time, from the timed ``batches``
+    ((origins, dirs) of EST_CALIBRATION_RAYS rays; log-log between them, flat beyond)."""
+    per_ray = []
+    for o, d in batches:
         t0 = time.perf_counter()
         st.object_function(o, d)
-        per_ray.append((time.perf_counter() - t0) / n)
+        per_ray.append((time.perf_counter() - t0) / len(o))
     log_n, log_c = np.log(EST_CALIBRATION_RAYS), np.log(np.maximum(per_ray, 1e-12))
-    cost = lambda n: float(np.exp(np.interp(np.log(max(n, 1.0)), log_n, log_c)))  # noqa: E731
+    return lambda n: float(np.exp(np.interp(np.log(max(n, 1.0)), log_n, log_c)))
+
+
+def _parallel_speedup(st, o, d, cost) -> float:
+    """How many times faster rays ``o``, ``d`` trace split over the bake's worker processes,
+    as the bake splits its batches, than the same chunks one after another (``cost``): 1 ..
+    the number of processes (two processes on two cores baked 1.4x, not 2x, faster than one).
+    Timed from the first chunk's start to the last one's end (the system-wide monotonic
+    clock): the processes' own start is a bake pass's fixed cost, spread there over many
+    chunks."""
     workers = workers_default()
     if workers <= 1:
-        return cost, 1.0
-    n, chunk = len(o), math.ceil(len(o) / workers)      # the largest batch, split
+        return 1.0
+    n, chunk = len(o), math.ceil(len(o) / workers)
 
-    def timed(a, b):                # when the chunk ran (the system-wide monotonic clock)
+    def timed(a, b):
         t0 = time.monotonic()
         st.object_function(o[a:b], d[a:b])
         return t0, time.monotonic()
     spans = np.array(map_chunks(timed, n, chunk, workers))
-    # from the first chunk's start to the last one's end: the processes' own start is a
-    # bake pass's fixed cost, spread there over many chunks, not part of the speed-up
     split = spans[:, 1].max() - spans[:, 0].min()
-    one = n * cost(chunk)                  # the same chunks one after another in one process
-    return cost, float(np.clip(one / max(split, 1e-9), 1.0, workers))
+    return float(np.clip(n * cost(chunk) / max(split, 1e-9), 1.0, workers))
 
 
 def _unit(v):

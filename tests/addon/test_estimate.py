@@ -171,18 +171,19 @@ class _SlowObject:
 
 
 def test_parallel_speedup_is_measured_not_assumed(bl, tmp_path, monkeypatch):
-    """The estimate times its largest calibration batch split over the bake's processes: work
+    """The estimate times its largest calibration batch split over the bake's processes (its
+    chunks last 0.4 s: long against the workers' staggered forks): work
     that runs side by side is counted about twice as fast on two, work that cannot is not
     (two processes on the 2-core test VM baked 1.4x, not 2x, faster than one), one process is
     1; the bake's large traced batches are divided by that speed-up."""
     backend = bl.backend
     monkeypatch.setattr(backend, "workers_default", lambda: 2)
-    _, side_by_side = backend._cost_per_ray(_SlowObject(2e-5))
-    _, one_at_a_time = backend._cost_per_ray(_SlowObject(2e-5, str(tmp_path / "lock")))
+    _, side_by_side = backend._calibrate(_SlowObject(1e-4))
+    _, one_at_a_time = backend._calibrate(_SlowObject(1e-4, str(tmp_path / "lock")))
     assert 1.5 < side_by_side <= 2.0
     assert 1.0 <= one_at_a_time < 1.3
     monkeypatch.setattr(backend, "workers_default", lambda: 1)
-    assert backend._cost_per_ray(_SlowObject(1e-6))[1] == 1.0
+    assert backend._calibrate(_SlowObject(1e-6))[1] == 1.0
     calls = [(4 * backend.TRACE_CHUNK, True, 1.0)]        # one trial batch of 4 chunks, 1 s
     flat = lambda n: 1e-5  # noqa: E731
     one = backend._bake_seconds(1.0, calls, 1.0, 1.0, flat, 1.0)
